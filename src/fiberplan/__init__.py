@@ -1,0 +1,1 @@
+"""fiberplan: collision-free motion planning for theta-phi fiber positioner robots."""

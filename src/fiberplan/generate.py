@@ -1,0 +1,230 @@
+"""Seeded scenario generators: random, unfold, fold and clustered (galaxy-like) targets.
+
+Randomness is explicit: every generator takes a seed or a ``numpy.random.Generator`` and
+never touches the global generator, so the same seed gives the same scenario.
+
+Kinds:
+
+- ``random``: random collision-free start -> random collision-free targets (reference 000's
+  simulation sets);
+- ``unfold``: datum (folded) start -> random targets (reference 002);
+- ``fold``: random start -> datum;
+- ``clustered``: random start -> targets drawn from a clustered, galaxy-like field, so that
+  neighbours' targets fall close together.
+
+Random fiber positions are uniform in each positioner's patrol region (area-uniform in the
+annulus ``[reach_min, reach_max]``); the parity is drawn at random where both are allowed.
+Colliding positioners are redrawn until the configuration is collision-free.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from fiberplan.errors import ScenarioError
+from fiberplan.geometry import min_pair_clearance
+from fiberplan.instrument import Instrument, load_instrument, preset_names
+from fiberplan.kinematics import inverse_kinematics
+from fiberplan.layout import focal_plane, hex_patch, neighbour_pairs
+from fiberplan.scenario import TARGET_JOINTS, Scenario
+
+SCENARIO_KINDS = ("random", "unfold", "fold", "clustered")
+
+Sampler = Callable[[np.ndarray, np.random.Generator], np.ndarray]
+"""Draws fiber positions ``(len(rows), 2)`` for the given positioner rows."""
+
+
+def _uniform_patrol_points(instrument: Instrument, base_xy: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Points uniform in each base's patrol annulus, shape ``base_xy.shape``."""
+    lo, hi = instrument.reach_min_mm, instrument.reach_max_mm
+    n = len(base_xy)
+    # Stay a hair inside the reach circles so inverse kinematics never rounds outside them.
+    radius = np.sqrt(rng.uniform((lo + 1e-6) ** 2, (hi - 1e-6) ** 2, n))
+    angle = rng.uniform(0.0, 2 * np.pi, n)
+    return base_xy + radius[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+
+
+def _joints_for_points(
+    instrument: Instrument, base_xy: np.ndarray, orient: np.ndarray, points: np.ndarray, rng: np.random.Generator
+) -> np.ndarray:
+    """Joint angles for fiber points with a random allowed parity (NaN rows where none fits)."""
+    n = len(points)
+    parity = rng.choice(np.array([1, -1]), size=n)
+    joints = inverse_kinematics(instrument, base_xy, orient, points, parity)
+    missing = np.isnan(joints[:, 0])
+    if np.any(missing):
+        joints[missing] = inverse_kinematics(instrument, base_xy[missing], orient[missing], points[missing], -parity[missing])
+    return joints
+
+
+def random_configuration(
+    instrument: Instrument,
+    base_xy: np.ndarray,
+    orient: np.ndarray,
+    pairs: np.ndarray,
+    rng: np.random.Generator,
+    sampler: Sampler | None = None,
+    max_rounds: int = 1000,
+) -> np.ndarray:
+    """A collision-free configuration with fibers drawn by ``sampler`` (uniform by default).
+
+    Every positioner is drawn once; then, round after round, one positioner of every
+    colliding pair (the later index) is drawn again until no pair collides.
+
+    Raises:
+        ScenarioError: no collision-free configuration was found in ``max_rounds`` rounds.
+    """
+    def draw(rows: np.ndarray) -> np.ndarray:
+        for _ in range(100):
+            pts = (
+                _uniform_patrol_points(instrument, base_xy[rows], rng)
+                if sampler is None
+                else sampler(rows, rng)
+            )
+            joints = _joints_for_points(instrument, base_xy[rows], orient[rows], pts, rng)
+            bad = np.isnan(joints[:, 0])
+            if not np.any(bad):
+                return joints
+            # Retry only the rows whose point no parity reaches.
+            if np.all(bad):
+                continue
+            out = joints
+            out[bad] = draw(rows[bad])
+            return out
+        raise ScenarioError(f"could not draw a reachable fiber position for positioner row {rows[0]}")
+
+    n = len(base_xy)
+    joints = draw(np.arange(n))
+    for _ in range(max_rounds):
+        if len(pairs) == 0:
+            return joints
+        clearance = min_pair_clearance(instrument, base_xy, orient, joints, pairs)
+        colliding = pairs[clearance < 0.0]
+        if len(colliding) == 0:
+            return joints
+        # Redraw the later index of each colliding pair, and sometimes the earlier one so
+        # that a positioner boxed in by fixed neighbours can still get out.
+        redraw = np.unique(np.where(rng.random(len(colliding)) < 0.8, colliding[:, 1], colliding[:, 0]))
+        joints[redraw] = draw(redraw)
+    raise ScenarioError(
+        f"no collision-free configuration found after {max_rounds} rounds for {n} positioners; "
+        "the targets may be too dense for this instrument"
+    )
+
+
+def clustered_sampler(
+    instrument: Instrument,
+    base_xy: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    n_clusters: int | None = None,
+    sigma_mm: float | None = None,
+    background: float = 0.2,
+    proposals: int = 64,
+) -> Sampler:
+    """Sampler of galaxy-like targets: Gaussian clusters over a uniform background.
+
+    The field density is ``background`` uniform plus ``1 - background`` spread over
+    ``n_clusters`` Gaussian blobs of width ``sigma_mm`` (defaults: one cluster per 8
+    positioners, sigma a third of the pitch). Each positioner's target is drawn from that
+    density restricted to its patrol annulus (importance resampling of ``proposals``
+    uniform candidates), so neighbours' targets fall close together.
+    """
+    n = len(base_xy)
+    n_clusters = max(1, n // 8) if n_clusters is None else int(n_clusters)
+    sigma = instrument.pitch_mm / 3.0 if sigma_mm is None else float(sigma_mm)
+    margin = instrument.reach_max_mm
+    lo = base_xy.min(axis=0) - margin
+    hi = base_xy.max(axis=0) + margin
+    centres = rng.uniform(lo, hi, size=(n_clusters, 2))
+    area = float(np.prod(hi - lo))
+    tree = cKDTree(centres)
+    k_near = min(8, n_clusters)
+
+    def sample(rows: np.ndarray, gen: np.random.Generator) -> np.ndarray:
+        base = base_xy[rows]
+        cand = np.stack([_uniform_patrol_points(instrument, base, gen) for _ in range(proposals)], axis=1)
+        _, near = tree.query(base, k=k_near)
+        near = np.asarray(near).reshape(len(rows), k_near)
+        diff = cand[:, :, None, :] - centres[near][:, None, :, :]
+        blobs = np.exp(-0.5 * np.sum(diff**2, axis=-1) / sigma**2).sum(axis=-1) / (2 * np.pi * sigma**2 * n_clusters)
+        weight = background / area + (1.0 - background) * blobs
+        cdf = np.cumsum(weight, axis=1)
+        pick = (cdf < gen.random(len(rows))[:, None] * cdf[:, -1:]).sum(axis=1)
+        return cand[np.arange(len(rows)), np.minimum(pick, proposals - 1)]
+
+    return sample
+
+
+def make_scenario(
+    instrument: str | Instrument = "desi",
+    n_positioners: int | None = 500,
+    kind: str = "random",
+    seed: int | np.random.Generator = 0,
+    *,
+    radius_mm: float | None = None,
+    random_orientation: bool = False,
+    clusters: int | None = None,
+) -> Scenario:
+    """Generate a seeded scenario on a hexagonal patch (or a full focal plane by radius).
+
+    Args:
+        instrument: preset name, instrument file path, or :class:`Instrument`.
+        n_positioners: size of the hexagonal patch (ignored when ``radius_mm`` is given).
+        kind: one of ``random``, ``unfold``, ``fold``, ``clustered``.
+        seed: integer seed or a ``numpy.random.Generator``.
+        radius_mm: lay out every lattice point within this radius instead of a patch.
+        random_orientation: draw each base orientation uniformly (default: all zero).
+        clusters: number of target clusters for ``clustered`` (default one per 8 positioners).
+
+    Raises:
+        ScenarioError: unknown kind, bad size, or no collision-free configuration found.
+        InstrumentError: unknown instrument preset.
+    """
+    if kind not in SCENARIO_KINDS:
+        raise ScenarioError(f"unknown scenario kind {kind!r}; choose one of {', '.join(SCENARIO_KINDS)}")
+    preset = instrument if isinstance(instrument, str) and instrument in preset_names() else None
+    inst = load_instrument(instrument) if isinstance(instrument, str) else instrument
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    if radius_mm is not None:
+        base = focal_plane(radius_mm, inst.pitch_mm)
+    else:
+        if n_positioners is None:
+            raise ScenarioError("give n_positioners or radius_mm")
+        base = hex_patch(n_positioners, inst.pitch_mm)
+    n = len(base)
+    orient = rng.uniform(-np.pi, np.pi, n) if random_orientation else np.zeros(n)
+    pairs = neighbour_pairs(inst, base)
+    datum = np.broadcast_to(np.array(inst.datum_rad), (n, 2)).copy()
+
+    if kind == "unfold":
+        start = datum
+    else:
+        start = random_configuration(inst, base, orient, pairs, rng)
+    if kind == "fold":
+        target = datum
+    elif kind == "clustered":
+        sampler = clustered_sampler(inst, base, rng, n_clusters=clusters)
+        target = random_configuration(inst, base, orient, pairs, rng, sampler=sampler)
+    else:
+        target = random_configuration(inst, base, orient, pairs, rng)
+
+    seed_value = None if isinstance(seed, np.random.Generator) else int(seed)
+    return Scenario(
+        instrument=inst,
+        ids=np.arange(n),
+        base_xy=base,
+        orient_deg=np.degrees(orient),
+        start_deg=np.degrees(start),
+        target_kind=np.full(n, TARGET_JOINTS),
+        target_values=np.degrees(target),
+        target_parity=np.zeros(n, dtype=np.int64),
+        name=f"{inst.name}-{n}-{kind}-seed{seed_value}",
+        kind=kind,
+        seed=seed_value,
+        instrument_preset=preset,
+    )
+

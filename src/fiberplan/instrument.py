@@ -1,0 +1,305 @@
+"""Instruments: arm lengths, speeds, hard stops and collision capsules of one positioner type.
+
+An instrument is read from a TOML file (the presets ``desi``, ``moons`` and ``sdss`` ship
+inside the package; see ``src/fiberplan/instruments/``). File values are in millimetres,
+degrees and rpm; the :class:`Instrument` object holds millimetres, radians and rad/s.
+
+Joint conventions (``DESIGN.md``): alpha is absolute about the positioner base, beta is
+relative to the alpha arm and equal to zero with the arms in line. A file may state
+``beta_convention = "folded"`` to give beta limits and datum measured from the folded arm
+(MOONS documents do); they are converted by adding 180 deg.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from fiberplan.errors import InstrumentError
+
+ArmName = Literal["alpha", "beta"]
+
+_RPM_TO_RAD_S = 2.0 * math.pi / 60.0
+
+
+@dataclass(frozen=True)
+class Capsule:
+    """A collision capsule: a segment along one arm plus a radius, on one layer.
+
+    The segment runs along the arm's axis from ``start_mm`` to ``end_mm``, measured from the
+    arm's joint (the base for ``alpha``, the elbow for ``beta``). A zero-length segment is a
+    disc. Two capsules of different positioners collide only when they share ``layer`` and
+    their segments are closer than the sum of their radii.
+    """
+
+    name: str
+    arm: ArmName
+    start_mm: float
+    end_mm: float
+    radius_mm: float
+    layer: int = 0
+
+    def __post_init__(self) -> None:
+        if self.arm not in ("alpha", "beta"):
+            raise InstrumentError(f"capsule {self.name!r}: arm must be 'alpha' or 'beta', found {self.arm!r}")
+        for label, value in (("start_mm", self.start_mm), ("end_mm", self.end_mm), ("radius_mm", self.radius_mm)):
+            if not math.isfinite(value):
+                raise InstrumentError(f"capsule {self.name!r}: {label} must be finite, found {value}")
+        if self.radius_mm <= 0:
+            raise InstrumentError(f"capsule {self.name!r}: radius_mm must be > 0, found {self.radius_mm}")
+
+
+@dataclass(frozen=True)
+class Instrument:
+    """Geometry and motion limits shared by every positioner of an instrument.
+
+    Angles are in radians, speeds in rad/s, lengths in millimetres.
+    """
+
+    name: str
+    pitch_mm: float
+    alpha_arm_mm: float
+    beta_arm_mm: float
+    alpha_speed_rad_s: float
+    beta_speed_rad_s: float
+    alpha_limits_rad: tuple[float, float]
+    beta_limits_rad: tuple[float, float]
+    datum_rad: tuple[float, float]
+    tolerance_mm: float
+    capsules: tuple[Capsule, ...]
+    description: str = ""
+    sources: dict[str, str] = field(default_factory=dict, compare=False, hash=False)
+    spec: dict[str, Any] | None = field(default=None, compare=False, hash=False, repr=False)
+
+    def __post_init__(self) -> None:
+        positive = {
+            "pitch_mm": self.pitch_mm,
+            "alpha_arm_mm": self.alpha_arm_mm,
+            "beta_arm_mm": self.beta_arm_mm,
+            "alpha_speed": self.alpha_speed_rad_s,
+            "beta_speed": self.beta_speed_rad_s,
+            "tolerance_mm": self.tolerance_mm,
+        }
+        for label, value in positive.items():
+            if not (math.isfinite(value) and value > 0):
+                raise InstrumentError(f"instrument {self.name!r}: {label} must be a finite number > 0, found {value}")
+        for label, (lo, hi) in (("alpha_limits", self.alpha_limits_rad), ("beta_limits", self.beta_limits_rad)):
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise InstrumentError(
+                    f"instrument {self.name!r}: {label} must be two finite angles with lower < upper, "
+                    f"found [{math.degrees(lo)}, {math.degrees(hi)}] deg"
+                )
+            if hi - lo > 2 * math.pi + 1e-12:
+                raise InstrumentError(
+                    f"instrument {self.name!r}: {label} span more than 360 deg; a joint range must fit in one turn"
+                )
+        if not self.capsules:
+            raise InstrumentError(f"instrument {self.name!r}: at least one collision capsule is needed")
+        if not (self.within_limits(np.array(self.datum_rad))):
+            raise InstrumentError(f"instrument {self.name!r}: datum {np.degrees(self.datum_rad)} deg is outside the joint limits")
+
+    # ------------------------------------------------------------------ derived values
+    @property
+    def speeds_rad_s(self) -> np.ndarray:
+        """Maximum joint speeds ``[alpha, beta]`` in rad/s."""
+        return np.array([self.alpha_speed_rad_s, self.beta_speed_rad_s])
+
+    @property
+    def limits_rad(self) -> np.ndarray:
+        """Hard stops as a ``(2, 2)`` array: row 0 alpha ``[lo, hi]``, row 1 beta ``[lo, hi]``."""
+        return np.array([self.alpha_limits_rad, self.beta_limits_rad], dtype=float)
+
+    @property
+    def reach_min_mm(self) -> float:
+        """Smallest fiber distance from the base the beta range allows."""
+        lo, hi = self.beta_limits_rad
+        # |l1 + l2 e^{ib}| is smallest where cos(b) is smallest inside [lo, hi].
+        cos_min = -1.0 if _contains_angle(lo, hi, math.pi) else min(math.cos(lo), math.cos(hi))
+        return math.sqrt(max(self.alpha_arm_mm**2 + self.beta_arm_mm**2 + 2 * self.alpha_arm_mm * self.beta_arm_mm * cos_min, 0.0))
+
+    @property
+    def reach_max_mm(self) -> float:
+        """Largest fiber distance from the base the beta range allows."""
+        lo, hi = self.beta_limits_rad
+        cos_max = 1.0 if _contains_angle(lo, hi, 0.0) else max(math.cos(lo), math.cos(hi))
+        return math.sqrt(self.alpha_arm_mm**2 + self.beta_arm_mm**2 + 2 * self.alpha_arm_mm * self.beta_arm_mm * cos_max)
+
+    @property
+    def extent_mm(self) -> float:
+        """Largest distance from the base any capsule surface can reach."""
+        extents = []
+        for capsule in self.capsules:
+            far = max(abs(capsule.start_mm), abs(capsule.end_mm))
+            arm_offset = self.alpha_arm_mm if capsule.arm == "beta" else 0.0
+            extents.append(arm_offset + far + capsule.radius_mm)
+        return max(extents)
+
+    @property
+    def beta_point_extent_mm(self) -> float:
+        """Largest distance from the elbow of any capsule segment point on the beta arm."""
+        values = [max(abs(c.start_mm), abs(c.end_mm)) for c in self.capsules if c.arm == "beta"]
+        return max(values, default=0.0)
+
+    @property
+    def alpha_point_extent_mm(self) -> float:
+        """Largest distance from the base of any capsule segment point (either arm)."""
+        values = [max(abs(c.start_mm), abs(c.end_mm)) for c in self.capsules if c.arm == "alpha"]
+        values.append(self.alpha_arm_mm + self.beta_point_extent_mm if any(c.arm == "beta" for c in self.capsules) else 0.0)
+        return max(values)
+
+    @property
+    def capsule_pairs(self) -> tuple[tuple[int, int], ...]:
+        """Index pairs ``(a, b)`` of capsules that can touch: same layer (ordered, both ways)."""
+        return tuple(
+            (a, b)
+            for a, ca in enumerate(self.capsules)
+            for b, cb in enumerate(self.capsules)
+            if ca.layer == cb.layer
+        )
+
+    def within_limits(self, joints: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+        """Whether joint angles ``(..., 2)`` lie inside the hard stops (with tolerance ``tol`` rad)."""
+        joints = np.asarray(joints, dtype=float)
+        lim = self.limits_rad
+        return np.all((joints >= lim[:, 0] - tol) & (joints <= lim[:, 1] + tol), axis=-1)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Full description in file units (mm, deg, rpm).
+
+        An instrument read from a file returns that file's content, so that writing and
+        reading it again gives bit-identical numbers; one built in code is converted.
+        """
+        if self.spec is not None:
+            return copy.deepcopy(self.spec)
+        return {
+            "name": self.name,
+            "description": self.description,
+            "beta_convention": "extended",
+            "geometry": {
+                "pitch_mm": self.pitch_mm,
+                "alpha_arm_mm": self.alpha_arm_mm,
+                "beta_arm_mm": self.beta_arm_mm,
+            },
+            "motion": {
+                "alpha_speed_rpm": self.alpha_speed_rad_s / _RPM_TO_RAD_S,
+                "beta_speed_rpm": self.beta_speed_rad_s / _RPM_TO_RAD_S,
+                "alpha_limits_deg": [math.degrees(v) for v in self.alpha_limits_rad],
+                "beta_limits_deg": [math.degrees(v) for v in self.beta_limits_rad],
+                "datum_deg": [math.degrees(v) for v in self.datum_rad],
+                "tolerance_mm": self.tolerance_mm,
+            },
+            "capsules": [
+                {
+                    "name": c.name,
+                    "arm": c.arm,
+                    "start_mm": c.start_mm,
+                    "end_mm": c.end_mm,
+                    "radius_mm": c.radius_mm,
+                    "layer": c.layer,
+                }
+                for c in self.capsules
+            ],
+            "sources": dict(self.sources),
+        }
+
+
+def _contains_angle(lo: float, hi: float, angle: float) -> bool:
+    """Whether ``angle + 2 pi k`` lies in ``[lo, hi]`` for some integer k."""
+    k = math.ceil((lo - angle) / (2 * math.pi))
+    return angle + 2 * math.pi * k <= hi
+
+
+def preset_names() -> list[str]:
+    """Names of the instrument presets shipped with fiberplan."""
+    folder = resources.files("fiberplan") / "instruments"
+    return sorted(p.name[: -len(".toml")] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def load_instrument(name_or_path: str | Path) -> Instrument:
+    """Load a preset by name (``desi``, ``moons``, ``sdss``) or an instrument TOML file by path.
+
+    Raises:
+        InstrumentError: the preset is unknown, the file is missing or malformed, or a value
+            is out of range. The message names the key and what to fix.
+    """
+    text_path = Path(name_or_path)
+    name = str(name_or_path)
+    if text_path.suffix == ".toml" or text_path.exists():
+        if not text_path.is_file():
+            raise InstrumentError(f"instrument file {str(text_path)!r} does not exist")
+        raw = text_path.read_text(encoding="utf-8")
+        origin = str(text_path)
+    else:
+        if name not in preset_names():
+            raise InstrumentError(
+                f"unknown instrument preset {name!r}; choose one of {', '.join(preset_names())} "
+                "or give the path of an instrument .toml file"
+            )
+        raw = (resources.files("fiberplan") / "instruments" / f"{name}.toml").read_text(encoding="utf-8")
+        origin = f"preset {name}"
+    try:
+        data = tomllib.loads(raw)
+    except tomllib.TOMLDecodeError as e:
+        raise InstrumentError(f"instrument file {origin}: not valid TOML ({e})") from e
+    return instrument_from_dict(data, origin=origin)
+
+
+def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> Instrument:
+    """Build an :class:`Instrument` from the file layout (mm, deg, rpm).
+
+    Raises:
+        InstrumentError: a key is missing or has the wrong type.
+    """
+    try:
+        convention = data.get("beta_convention", "extended")
+        if convention not in ("extended", "folded"):
+            raise InstrumentError(f"{origin}: beta_convention must be 'extended' or 'folded', found {convention!r}")
+        beta_shift = math.pi if convention == "folded" else 0.0
+        geometry = data["geometry"]
+        motion = data["motion"]
+        alpha_limits = tuple(math.radians(float(v)) for v in motion["alpha_limits_deg"])
+        beta_limits = tuple(math.radians(float(v)) + beta_shift for v in motion["beta_limits_deg"])
+        datum_deg = motion["datum_deg"]
+        datum = (math.radians(float(datum_deg[0])), math.radians(float(datum_deg[1])) + beta_shift)
+        if len(alpha_limits) != 2 or len(beta_limits) != 2:
+            raise InstrumentError(f"{origin}: joint limits must be [lower, upper] pairs in degrees")
+        capsules = tuple(
+            Capsule(
+                name=str(c["name"]),
+                arm=c["arm"],
+                start_mm=float(c["start_mm"]),
+                end_mm=float(c["end_mm"]),
+                radius_mm=float(c["radius_mm"]),
+                layer=int(c.get("layer", 0)),
+            )
+            for c in data["capsules"]
+        )
+        return Instrument(
+            name=str(data["name"]),
+            description=str(data.get("description", "")),
+            pitch_mm=float(geometry["pitch_mm"]),
+            alpha_arm_mm=float(geometry["alpha_arm_mm"]),
+            beta_arm_mm=float(geometry["beta_arm_mm"]),
+            alpha_speed_rad_s=float(motion["alpha_speed_rpm"]) * _RPM_TO_RAD_S,
+            beta_speed_rad_s=float(motion["beta_speed_rpm"]) * _RPM_TO_RAD_S,
+            alpha_limits_rad=(alpha_limits[0], alpha_limits[1]),
+            beta_limits_rad=(beta_limits[0], beta_limits[1]),
+            datum_rad=datum,
+            tolerance_mm=float(motion["tolerance_mm"]),
+            capsules=capsules,
+            sources={str(k): str(v) for k, v in data.get("sources", {}).items()},
+            spec=copy.deepcopy(data),
+        )
+    except KeyError as e:
+        raise InstrumentError(f"{origin}: missing key {e.args[0]!r}; see src/fiberplan/instruments/desi.toml for the layout") from e
+    except (TypeError, ValueError) as e:
+        if isinstance(e, InstrumentError):
+            raise
+        raise InstrumentError(f"{origin}: bad value ({e})") from e

@@ -1,0 +1,107 @@
+"""Metrics with one definition everywhere (``DESIGN.md``, Metrics).
+
+- reached: final fiber within the instrument's tolerance of the target;
+  success rate = reached / positioners with a target.
+- makespan: time at which the last *reached* positioner reaches its target and stays
+  (positioners that never reach it are counted by the success rate, not here).
+- lower bound: max over positioners of the unobstructed straight joint move at full speed,
+  :math:`\\max_i \\max_k |\\Delta q_{ik}| / \\omega_k`; no planner can beat it.
+- path length: length of each fiber's path in the focal plane (mm).
+- energy: :math:`\\sum_i \\int \\|\\dot q_i\\|^2 dt` (rad^2/s), exact for piecewise-linear motion.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from fiberplan.kinematics import fiber_positions, move_times
+from fiberplan.scenario import Scenario
+from fiberplan.trajectory import PlanResult, Trajectory
+from fiberplan.verify import VerificationReport
+
+
+def reached_mask(scenario: Scenario, trajectory: Trajectory) -> np.ndarray:
+    """Which positioners end within tolerance of their target (False for those without)."""
+    final = fiber_positions(scenario.instrument, scenario.base_xy, scenario.orient, trajectory.joints[-1])
+    error = np.linalg.norm(final - scenario.target_xy, axis=-1)
+    return (error <= scenario.instrument.tolerance_mm) & scenario.has_target
+
+
+def arrival_times(scenario: Scenario, trajectory: Trajectory) -> np.ndarray:
+    """Time each positioner enters its tolerance disc for good (NaN if it never stays)."""
+    fibers = fiber_positions(scenario.instrument, scenario.base_xy, scenario.orient, trajectory.joints)
+    inside = np.linalg.norm(fibers - scenario.target_xy, axis=-1) <= scenario.instrument.tolerance_mm
+    # Last sample outside the disc; arrival is the sample after it.
+    outside_rev = ~inside[::-1]
+    any_outside = outside_rev.any(axis=0)
+    last_out = len(inside) - 1 - np.argmax(outside_rev, axis=0)
+    arrive_idx = np.where(any_outside, last_out + 1, 0)
+    times = np.append(trajectory.times, np.nan)
+    result = times[arrive_idx]
+    return np.where(scenario.has_target, result, np.nan)
+
+
+def lower_bound_s(scenario: Scenario) -> float:
+    """Physical lower bound on the makespan (s)."""
+    times = move_times(scenario.instrument, scenario.start, scenario.target)
+    return float(times[scenario.has_target].max()) if np.any(scenario.has_target) else 0.0
+
+
+def path_lengths_mm(scenario: Scenario, trajectory: Trajectory) -> np.ndarray:
+    """Fiber path length of each positioner (mm), along the sampled polyline."""
+    fibers = fiber_positions(scenario.instrument, scenario.base_xy, scenario.orient, trajectory.joints)
+    return np.linalg.norm(np.diff(fibers, axis=0), axis=-1).sum(axis=0)
+
+
+def energy(trajectory: Trajectory) -> float:
+    """Integral of squared joint velocity summed over positioners and joints (rad^2/s)."""
+    if len(trajectory.times) < 2:
+        return 0.0
+    dt = np.diff(trajectory.times)
+    velocity = np.diff(trajectory.joints, axis=0) / dt[:, None, None]
+    return float(np.sum(velocity**2 * dt[:, None, None]))
+
+
+def summarize(result: PlanResult, report: VerificationReport | None = None) -> dict[str, Any]:
+    """One JSON-ready summary of a planned (and optionally verified) run."""
+    scenario, trajectory = result.scenario, result.trajectory
+    reached = reached_mask(scenario, trajectory)
+    n_targets = int(scenario.has_target.sum())
+    arrivals = arrival_times(scenario, trajectory)
+    arrived = arrivals[reached]
+    makespan = float(np.nanmax(arrived)) if len(arrived) else float("nan")
+    bound = lower_bound_s(scenario)
+    paths = path_lengths_mm(scenario, trajectory)
+    counts = {name: int(np.sum(result.outcome == name)) for name in ("reached", "deadlocked", "failed")}
+    summary: dict[str, Any] = {
+        "planner": result.planner,
+        "instrument": scenario.instrument.name,
+        "scenario_kind": scenario.kind,
+        "n_positioners": scenario.n_positioners,
+        "seed": scenario.seed,
+        "reached": int(reached.sum()),
+        "targets": n_targets,
+        "success_rate": float(reached.sum() / n_targets) if n_targets else 1.0,
+        "deadlocked": counts["deadlocked"],
+        "failed": counts["failed"],
+        "makespan_s": makespan,
+        "lower_bound_s": bound,
+        "makespan_over_bound": makespan / bound if bound > 0 else float("nan"),
+        "duration_s": trajectory.duration_s,
+        "plan_wall_s": float(result.plan_wall_s),
+        "path_length_mm_mean": float(paths[scenario.has_target].mean()) if n_targets else 0.0,
+        "path_length_mm_total": float(paths.sum()),
+        "energy_rad2_s": energy(trajectory),
+    }
+    if report is not None:
+        summary.update(
+            {
+                "collisions": report.n_collisions,
+                "limit_violations": len(report.limit_violations),
+                "verified_ok": report.ok,
+                "min_clearance_mm": report.min_clearance_mm,
+            }
+        )
+    return summary

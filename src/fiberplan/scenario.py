@@ -1,0 +1,428 @@
+"""Scenarios: an instrument, its positioners, where they start and where they must go.
+
+A :class:`Scenario` is validated when built: finite numbers, unique ids, starts inside the
+hard stops and collision-free, targets inside the patrol region and reachable with the
+requested parity, goal configuration collision-free. Its angles are kept in the file's
+units (degrees) so that a scenario written and read again is bit-identical; the radian
+arrays planners use are derived from them.
+
+File format (JSON, one file; documented in the README)::
+
+    {
+      "format": "fiberplan-scenario", "version": 1,
+      "name": "desi-500-random-seed1", "kind": "random", "seed": 1,
+      "instrument": "desi",                      # a preset name, or the full instrument table
+      "positioners": [
+        {"id": 0, "x_mm": 0.0, "y_mm": 0.0, "orient_deg": 0.0,
+         "start_deg": [12.5, 140.0],
+         "target": {"alpha_deg": 40.0, "beta_deg": 95.0}},      # joint-angle target
+        {"id": 1, ..., "target": {"x_mm": 12.1, "y_mm": 3.0, "parity": 1}},  # fiber x/y target
+        {"id": 2, ..., "target": null}                            # no target: stay put
+      ]
+    }
+
+``parity`` is optional (``1``, ``-1``, or absent / ``0`` for "the faster one").
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fiberplan._atomic import atomic_path
+from fiberplan.errors import InstrumentError, ScenarioError
+from fiberplan.geometry import min_pair_clearance
+from fiberplan.instrument import Instrument, instrument_from_dict, load_instrument
+from fiberplan.kinematics import best_parity_joints, fiber_positions, inverse_kinematics
+from fiberplan.layout import neighbour_pairs
+
+FORMAT_NAME = "fiberplan-scenario"
+FORMAT_VERSION = 1
+
+TARGET_NONE = 0
+TARGET_JOINTS = 1
+TARGET_XY = 2
+
+
+@dataclass(frozen=True, eq=False)
+class Scenario:
+    """An instrument, N positioners, their start configuration and their targets.
+
+    Attributes:
+        instrument: positioner geometry and limits.
+        ids: ``(N,)`` positioner ids (unique integers).
+        base_xy: ``(N, 2)`` base positions (mm).
+        orient_deg: ``(N,)`` base orientations (deg).
+        start_deg: ``(N, 2)`` start joint angles ``(alpha, beta)`` (deg).
+        target_kind: ``(N,)`` 0 no target, 1 joint-angle target, 2 fiber x/y target.
+        target_values: ``(N, 2)`` joint angles (deg) or fiber x/y (mm) by ``target_kind``;
+            ignored rows hold zeros.
+        target_parity: ``(N,)`` 0 (faster one), +1 or -1; used for x/y targets.
+        name, kind, seed: provenance.
+        instrument_preset: the preset name when the instrument is a preset (files then
+            store the name); ``None`` stores the full geometry.
+        meta: free-form, JSON-serialisable.
+
+    Raises:
+        ScenarioError: on any invalid positioner; the message names its id and the fix.
+    """
+
+    instrument: Instrument
+    ids: np.ndarray
+    base_xy: np.ndarray
+    orient_deg: np.ndarray
+    start_deg: np.ndarray
+    target_kind: np.ndarray
+    target_values: np.ndarray
+    target_parity: np.ndarray
+    name: str = ""
+    kind: str = "custom"
+    seed: int | None = None
+    instrument_preset: str | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for attr, dtype in (
+            ("ids", np.int64),
+            ("base_xy", float),
+            ("orient_deg", float),
+            ("start_deg", float),
+            ("target_kind", np.int64),
+            ("target_values", float),
+            ("target_parity", np.int64),
+        ):
+            value = np.array(getattr(self, attr), dtype=dtype)
+            value.setflags(write=False)
+            object.__setattr__(self, attr, value)
+        self._validate()
+
+    # ------------------------------------------------------------------ derived arrays
+    @property
+    def n_positioners(self) -> int:
+        """Number of positioners."""
+        return len(self.ids)
+
+    @cached_property
+    def orient(self) -> np.ndarray:
+        """Base orientations (rad)."""
+        return np.radians(self.orient_deg)
+
+    @cached_property
+    def start(self) -> np.ndarray:
+        """Start joint angles ``(N, 2)`` (rad)."""
+        return np.radians(self.start_deg)
+
+    @cached_property
+    def pairs(self) -> np.ndarray:
+        """Neighbour pairs ``(P, 2)`` whose capsules can ever touch."""
+        return neighbour_pairs(self.instrument, self.base_xy)
+
+    @cached_property
+    def has_target(self) -> np.ndarray:
+        """Which positioners have a target (the others should hold still)."""
+        return self.target_kind != TARGET_NONE
+
+    @cached_property
+    def target(self) -> np.ndarray:
+        """Goal joint angles ``(N, 2)`` (rad); the start for positioners without target."""
+        return self._resolve_targets()
+
+    @cached_property
+    def target_xy(self) -> np.ndarray:
+        """Goal fiber positions ``(N, 2)`` (mm)."""
+        return fiber_positions(self.instrument, self.base_xy, self.orient, self.target)
+
+    def index_of(self, positioner_id: int) -> int:
+        """Row index of a positioner id."""
+        rows = np.flatnonzero(self.ids == positioner_id)
+        if len(rows) == 0:
+            raise ScenarioError(f"positioner {positioner_id} is not in this scenario")
+        return int(rows[0])
+
+    # ------------------------------------------------------------------ validation
+    def _resolve_targets(self) -> np.ndarray:
+        inst = self.instrument
+        goal = self.start.copy()
+        joints_rows = self.target_kind == TARGET_JOINTS
+        goal[joints_rows] = np.radians(self.target_values[joints_rows])
+        xy_rows = np.flatnonzero(self.target_kind == TARGET_XY)
+        if len(xy_rows):
+            base, orient = self.base_xy[xy_rows], self.orient[xy_rows]
+            xy = self.target_values[xy_rows]
+            parity = self.target_parity[xy_rows]
+            fixed = inverse_kinematics(inst, base, orient, xy, np.where(parity == 0, 1, parity))
+            best = best_parity_joints(inst, base, orient, xy, self.start[xy_rows])
+            goal[xy_rows] = np.where((parity == 0)[:, None], best, fixed)
+        return goal
+
+    def _validate(self) -> None:
+        inst = self.instrument
+        n = len(self.ids)
+        shapes = {
+            "base_xy": (n, 2),
+            "orient_deg": (n,),
+            "start_deg": (n, 2),
+            "target_kind": (n,),
+            "target_values": (n, 2),
+            "target_parity": (n,),
+        }
+        if n == 0:
+            raise ScenarioError("a scenario needs at least one positioner")
+        for attr, shape in shapes.items():
+            if getattr(self, attr).shape != shape:
+                raise ScenarioError(f"scenario array {attr} has shape {getattr(self, attr).shape}, expected {shape}")
+        unique, counts = np.unique(self.ids, return_counts=True)
+        if np.any(counts > 1):
+            dup = unique[counts > 1]
+            raise ScenarioError(f"positioner ids must be unique; id {dup[0]} appears {counts[counts > 1][0]} times")
+        for attr in ("base_xy", "orient_deg", "start_deg", "target_values"):
+            values = getattr(self, attr).reshape(n, -1)
+            bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
+            if len(bad):
+                raise ScenarioError(
+                    f"positioner {self.ids[bad[0]]}: {attr} holds a non-finite value {values[bad[0]].tolist()}; "
+                    "every number must be finite"
+                )
+        bad = np.flatnonzero(~np.isin(self.target_kind, (TARGET_NONE, TARGET_JOINTS, TARGET_XY)))
+        if len(bad):
+            raise ScenarioError(f"positioner {self.ids[bad[0]]}: unknown target kind {self.target_kind[bad[0]]}")
+        bad = np.flatnonzero(~np.isin(self.target_parity, (-1, 0, 1)))
+        if len(bad):
+            raise ScenarioError(
+                f"positioner {self.ids[bad[0]]}: parity must be 1, -1 or 0 (either), found {self.target_parity[bad[0]]}"
+            )
+        lim_deg = np.degrees(inst.limits_rad)
+        bad = np.flatnonzero(~inst.within_limits(self.start))
+        if len(bad):
+            k = bad[0]
+            raise ScenarioError(
+                f"positioner {self.ids[k]}: start joints {self.start_deg[k].tolist()} deg are beyond a hard stop; "
+                f"alpha must lie in {lim_deg[0].tolist()} deg and beta in {lim_deg[1].tolist()} deg"
+            )
+        self._validate_targets()
+        self._validate_collisions(self.start, "start configuration")
+        self._validate_collisions(self.target, "goal configuration")
+
+    def _validate_targets(self) -> None:
+        inst = self.instrument
+        goal = self.target
+        lim_deg = np.degrees(inst.limits_rad)
+        joints_rows = self.target_kind == TARGET_JOINTS
+        bad = np.flatnonzero(joints_rows & ~inst.within_limits(goal))
+        if len(bad):
+            k = bad[0]
+            raise ScenarioError(
+                f"positioner {self.ids[k]}: target joints {self.target_values[k].tolist()} deg are beyond a hard stop; "
+                f"alpha must lie in {lim_deg[0].tolist()} deg and beta in {lim_deg[1].tolist()} deg"
+            )
+        xy_rows = self.target_kind == TARGET_XY
+        bad = np.flatnonzero(xy_rows & np.isnan(goal).any(axis=1))
+        if len(bad):
+            k = bad[0]
+            radius = float(np.hypot(*(self.target_values[k] - self.base_xy[k])))
+            lo, hi = inst.reach_min_mm, inst.reach_max_mm
+            if not (lo - 1e-9 <= radius <= hi + 1e-9):
+                raise ScenarioError(
+                    f"positioner {self.ids[k]}: target ({self.target_values[k][0]:.4f}, {self.target_values[k][1]:.4f}) mm "
+                    f"is {radius:.4f} mm from its base, outside the patrol region [{lo:.4f}, {hi:.4f}] mm; "
+                    "give a target inside the patrol region or assign it to another positioner"
+                )
+            raise ScenarioError(
+                f"positioner {self.ids[k]}: target ({self.target_values[k][0]:.4f}, {self.target_values[k][1]:.4f}) mm "
+                f"cannot be reached with parity {self.target_parity[k]} inside the hard stops; "
+                "use the other parity or leave parity out (0) to let fiberplan choose"
+            )
+
+    def _validate_collisions(self, joints: np.ndarray, what: str) -> None:
+        pairs = self.pairs
+        if len(pairs) == 0:
+            return
+        clearance = min_pair_clearance(self.instrument, self.base_xy, self.orient, joints, pairs)
+        bad = np.flatnonzero(clearance < 0.0)
+        if len(bad):
+            k = bad[np.argmin(clearance[bad])]
+            i, j = pairs[k]
+            fix = "move one of them first or change a start angle" if what.startswith("start") else "change one of their targets"
+            raise ScenarioError(
+                f"positioners {self.ids[i]} and {self.ids[j]} collide in the {what} "
+                f"(capsules overlap by {-clearance[k]:.4f} mm; {len(bad)} colliding pair(s) in all); {fix}"
+            )
+
+    # ------------------------------------------------------------------ file format
+    def to_dict(self) -> dict[str, Any]:
+        """The scenario in the JSON file layout."""
+        positioners = []
+        for k in range(self.n_positioners):
+            kind = int(self.target_kind[k])
+            target: dict[str, Any] | None
+            if kind == TARGET_NONE:
+                target = None
+            elif kind == TARGET_JOINTS:
+                target = {"alpha_deg": float(self.target_values[k, 0]), "beta_deg": float(self.target_values[k, 1])}
+            else:
+                target = {"x_mm": float(self.target_values[k, 0]), "y_mm": float(self.target_values[k, 1])}
+                if self.target_parity[k] != 0:
+                    target["parity"] = int(self.target_parity[k])
+            positioners.append(
+                {
+                    "id": int(self.ids[k]),
+                    "x_mm": float(self.base_xy[k, 0]),
+                    "y_mm": float(self.base_xy[k, 1]),
+                    "orient_deg": float(self.orient_deg[k]),
+                    "start_deg": [float(self.start_deg[k, 0]), float(self.start_deg[k, 1])],
+                    "target": target,
+                }
+            )
+        return {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "name": self.name,
+            "kind": self.kind,
+            "seed": self.seed,
+            "instrument": self.instrument_preset if self.instrument_preset else self.instrument.to_dict(),
+            "meta": self.meta,
+            "positioners": positioners,
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write the scenario as JSON, atomically. Returns the path."""
+        path = Path(path)
+        text = json.dumps(self.to_dict(), indent=1)
+        with atomic_path(path) as tmp:
+            tmp.write_text(text + "\n", encoding="utf-8")
+        return path
+
+    def with_starts(self, start_deg: np.ndarray) -> Scenario:
+        """A copy with other start angles (deg)."""
+        return _replace(self, start_deg=np.asarray(start_deg, dtype=float))
+
+
+def _replace(scenario: Scenario, **changes: Any) -> Scenario:
+    fields = {
+        name: getattr(scenario, name)
+        for name in (
+            "instrument", "ids", "base_xy", "orient_deg", "start_deg", "target_kind", "target_values",
+            "target_parity", "name", "kind", "seed", "instrument_preset", "meta",
+        )
+    }
+    fields.update(changes)
+    return Scenario(**fields)
+
+
+def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
+    """Build a :class:`Scenario` from the JSON layout.
+
+    Raises:
+        ScenarioError: a key is missing, a value has the wrong type, or validation fails.
+    """
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{origin}: the top level must be a JSON object")
+    if data.get("format") != FORMAT_NAME:
+        raise ScenarioError(f"{origin}: 'format' must be {FORMAT_NAME!r}, found {data.get('format')!r}")
+    if data.get("version") != FORMAT_VERSION:
+        raise ScenarioError(f"{origin}: unsupported version {data.get('version')!r}; this fiberplan reads version {FORMAT_VERSION}")
+    raw_instrument = data.get("instrument")
+    try:
+        if isinstance(raw_instrument, str):
+            instrument = load_instrument(raw_instrument)
+            preset: str | None = raw_instrument
+        elif isinstance(raw_instrument, dict):
+            instrument = instrument_from_dict(raw_instrument, origin=f"{origin}: instrument")
+            preset = None
+        else:
+            raise ScenarioError(f"{origin}: 'instrument' must be a preset name or an instrument table")
+    except InstrumentError as e:
+        raise ScenarioError(f"{origin}: {e}") from e
+    rows = data.get("positioners")
+    if not isinstance(rows, list) or not rows:
+        raise ScenarioError(f"{origin}: 'positioners' must be a non-empty list")
+    n = len(rows)
+    ids = np.zeros(n, dtype=np.int64)
+    base = np.zeros((n, 2))
+    orient = np.zeros(n)
+    start = np.zeros((n, 2))
+    kind = np.zeros(n, dtype=np.int64)
+    values = np.zeros((n, 2))
+    parity = np.zeros(n, dtype=np.int64)
+    for k, row in enumerate(rows):
+        label = f"positioner {row.get('id', f'#{k}') if isinstance(row, dict) else f'#{k}'}"
+        try:
+            ids[k] = _as_int(row["id"])
+            base[k] = (_as_float(row["x_mm"]), _as_float(row["y_mm"]))
+            orient[k] = _as_float(row.get("orient_deg", 0.0))
+            start_row = row["start_deg"]
+            if not isinstance(start_row, list) or len(start_row) != 2:
+                raise ValueError("start_deg must be a list [alpha_deg, beta_deg]")
+            start[k] = (_as_float(start_row[0]), _as_float(start_row[1]))
+            target = row.get("target")
+            if target is None:
+                kind[k] = TARGET_NONE
+            elif not isinstance(target, dict):
+                raise ValueError("target must be an object or null")
+            elif "alpha_deg" in target or "beta_deg" in target:
+                kind[k] = TARGET_JOINTS
+                values[k] = (_as_float(target["alpha_deg"]), _as_float(target["beta_deg"]))
+            elif "x_mm" in target or "y_mm" in target:
+                kind[k] = TARGET_XY
+                values[k] = (_as_float(target["x_mm"]), _as_float(target["y_mm"]))
+                parity[k] = _as_int(target.get("parity", 0))
+            else:
+                raise ValueError("target needs alpha_deg/beta_deg or x_mm/y_mm")
+        except KeyError as e:
+            raise ScenarioError(f"{origin}: {label}: missing key {e.args[0]!r}") from e
+        except (TypeError, ValueError, AttributeError) as e:
+            raise ScenarioError(f"{origin}: {label}: {e}") from e
+    seed = data.get("seed")
+    return Scenario(
+        instrument=instrument,
+        ids=ids,
+        base_xy=base,
+        orient_deg=orient,
+        start_deg=start,
+        target_kind=kind,
+        target_values=values,
+        target_parity=parity,
+        name=str(data.get("name", "")),
+        kind=str(data.get("kind", "custom")),
+        seed=None if seed is None else int(seed),
+        instrument_preset=preset,
+        meta=dict(data.get("meta") or {}),
+    )
+
+
+def _as_float(value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"expected a number, found {value!r}")
+    return float(value)
+
+
+def _as_int(value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"expected an integer, found {value!r}")
+    return int(value)
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read a scenario JSON file.
+
+    Raises:
+        ScenarioError: the file is missing, truncated, not JSON, or describes an invalid scenario.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ScenarioError(f"scenario file {str(path)!r} does not exist")
+    text = path.read_text(encoding="utf-8")
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ScenarioError(
+            f"scenario file {str(path)!r} is not valid JSON (line {e.lineno}, column {e.colno}: {e.msg}); "
+            "is it truncated? Regenerate it with `fiberplan scenario`"
+        ) from e
+    return scenario_from_dict(data, origin=f"scenario file {str(path)!r}")
+

@@ -1,0 +1,262 @@
+"""Independent verifier: joint limits, speed limits and collisions, at and between samples.
+
+This module imports no planner: it checks any trajectory (``Trajectory`` of linear joint
+motion between samples) against the scenario's instrument with exact capsule distances.
+
+Between two samples a positioner's joints move linearly, so no point of its capsules moves
+further than
+
+.. math:: M_i = \\rho_{\\alpha} |\\Delta\\alpha_i| + \\rho_{\\beta} |\\Delta\\beta_i|
+
+(``rho_alpha``: farthest capsule point from the base, ``rho_beta``: from the elbow). The
+clearance of pair ``(i, j)`` therefore changes by at most ``M_i + M_j`` over the interval.
+Each interval is bisected until, on every piece, the pair's points move less than
+``fraction`` of the clearance measured at both ends of the piece; a piece with positive
+clearances at both ends then cannot hide a contact. A collision found between samples is
+reported at the instant it was probed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fiberplan.geometry import clearance_between, pair_clearance
+from fiberplan.layout import neighbour_pairs
+from fiberplan.scenario import Scenario
+from fiberplan.trajectory import Trajectory
+
+_ANGLE_TOL = 1e-9
+_SPEED_REL_TOL = 1e-6
+_MAX_BISECTIONS = 40
+
+
+@dataclass(frozen=True)
+class CollisionEvent:
+    """One colliding pair: when it first collided, and its worst overlap."""
+
+    id_i: int
+    id_j: int
+    capsule_i: str
+    capsule_j: str
+    t_first_s: float
+    t_worst_s: float
+    min_distance_mm: float
+    required_mm: float
+
+    @property
+    def overlap_mm(self) -> float:
+        """How far the capsules interpenetrate at worst."""
+        return self.required_mm - self.min_distance_mm
+
+
+@dataclass(frozen=True)
+class LimitViolation:
+    """A joint beyond a hard stop or faster than its motor."""
+
+    positioner_id: int
+    joint: str
+    t_s: float
+    value: float
+    limit: float
+    kind: str  # "hard_stop" or "speed"
+
+
+@dataclass
+class VerificationReport:
+    """Everything the verifier found.
+
+    ``ok`` is true when the trajectory starts at the scenario's start, respects every hard
+    stop and speed limit, and no pair collides at any instant.
+    """
+
+    n_positioners: int
+    n_samples: int
+    n_pairs: int
+    collisions: list[CollisionEvent] = field(default_factory=list)
+    limit_violations: list[LimitViolation] = field(default_factory=list)
+    start_mismatch_ids: list[int] = field(default_factory=list)
+    min_clearance_mm: float = float("inf")
+    probes: int = 0
+
+    @property
+    def ok(self) -> bool:
+        """No collision, no limit violation, and the trajectory starts at the scenario's start."""
+        return not (self.collisions or self.limit_violations or self.start_mismatch_ids)
+
+    @property
+    def n_collisions(self) -> int:
+        """Number of colliding positioner pairs."""
+        return len(self.collisions)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (collision and violation lists included)."""
+        return {
+            "ok": self.ok,
+            "n_positioners": self.n_positioners,
+            "n_samples": self.n_samples,
+            "n_pairs_checked": self.n_pairs,
+            "collisions": self.n_collisions,
+            "collision_events": [asdict(c) | {"overlap_mm": c.overlap_mm} for c in self.collisions],
+            "limit_violations": [asdict(v) for v in self.limit_violations],
+            "start_mismatch_ids": self.start_mismatch_ids,
+            "min_clearance_mm": self.min_clearance_mm,
+            "probes": self.probes,
+        }
+
+
+def verify(scenario: Scenario, trajectory: Trajectory, *, fraction: float = 0.5, time_chunk: int = 64) -> VerificationReport:
+    """Check a trajectory against the scenario's instrument.
+
+    Args:
+        scenario: positioners, bases and instrument.
+        trajectory: joint angles ``(T, N, 2)`` on a time grid, linear between samples.
+        fraction: bisect each inter-sample interval until no point moves more than this
+            fraction of the clearance between two checks (0 < fraction < 1).
+        time_chunk: samples processed at once (memory bound for large N).
+
+    Returns:
+        A :class:`VerificationReport`.
+    """
+    if not 0.0 < fraction < 1.0:
+        raise ValueError(f"fraction must lie in (0, 1), found {fraction}")
+    inst = scenario.instrument
+    joints = trajectory.joints
+    times = trajectory.times
+    n_t, n = joints.shape[0], joints.shape[1]
+    if n != scenario.n_positioners:
+        raise ValueError(f"trajectory has {n} positioners, scenario has {scenario.n_positioners}")
+    pairs = neighbour_pairs(inst, scenario.base_xy)
+    report = VerificationReport(n_positioners=n, n_samples=n_t, n_pairs=len(pairs))
+    ids = scenario.ids
+
+    mismatch = np.flatnonzero(np.any(np.abs(joints[0] - scenario.start) > 1e-7, axis=1))
+    report.start_mismatch_ids = [int(ids[k]) for k in mismatch]
+    _check_limits(scenario, trajectory, report)
+    if len(pairs) == 0 or n_t == 0:
+        return report
+
+    combos = np.array(inst.capsule_pairs).reshape(-1, 2)
+    names = [c.name for c in inst.capsules]
+    radii_sum = np.array([inst.capsules[a].radius_mm + inst.capsules[b].radius_mm for a, b in combos])
+    worst: dict[int, list[float]] = {}  # pair index -> [t_first, t_worst, clearance, combo]
+
+    def record(pair_idx: np.ndarray, t: np.ndarray, clear_k: np.ndarray) -> None:
+        best = clear_k.argmin(axis=1)
+        value = clear_k[np.arange(len(best)), best]
+        for p, tt, v, k in zip(pair_idx.tolist(), t.tolist(), value.tolist(), best.tolist(), strict=True):
+            entry = worst.get(p)
+            if entry is None:
+                worst[p] = [tt, tt, v, k]
+            else:
+                entry[0] = min(entry[0], tt)
+                if v < entry[2]:
+                    entry[1], entry[2], entry[3] = tt, v, k
+
+    # Clearances at every sample, chunk by chunk.
+    sample_clear = np.empty((n_t, len(pairs)))
+    for k0 in range(0, n_t, time_chunk):
+        k1 = min(n_t, k0 + time_chunk)
+        full = pair_clearance(inst, scenario.base_xy, scenario.orient, joints[k0:k1], pairs).clearance
+        sample_clear[k0:k1] = full.min(axis=-1)
+        bad_t, bad_p = np.nonzero(sample_clear[k0:k1] < 0.0)
+        if len(bad_t):
+            record(bad_p, times[k0 + bad_t], full[bad_t, bad_p])
+    report.min_clearance_mm = float(sample_clear.min())
+    report.probes = int(sample_clear.size)
+
+    # Between samples: bisect the intervals whose motion bound is not small against the clearance.
+    if n_t > 1:
+        rho_a, rho_b = inst.alpha_point_extent_mm, inst.beta_point_extent_mm
+        step = np.abs(np.diff(joints, axis=0))  # (T-1, N, 2)
+        motion = rho_a * step[..., 0] + rho_b * step[..., 1]  # (T-1, N)
+        bound = motion[:, pairs[:, 0]] + motion[:, pairs[:, 1]]  # (T-1, P)
+        c0, c1 = sample_clear[:-1], sample_clear[1:]
+        needs = (bound > fraction * np.minimum(c0, c1)) & (c0 >= 0.0) & (c1 >= 0.0) & (bound > 0.0)
+        k_idx, p_idx = np.nonzero(needs)
+        lo = np.zeros(len(k_idx))
+        hi = np.ones(len(k_idx))
+        clo, chi = c0[k_idx, p_idx], c1[k_idx, p_idx]
+        bnd = bound[k_idx, p_idx]
+        for _ in range(_MAX_BISECTIONS):
+            if len(k_idx) == 0:
+                break
+            mid = 0.5 * (lo + hi)
+            i_rows, j_rows = pairs[p_idx, 0], pairs[p_idx, 1]
+            q_i = (1 - mid)[:, None] * joints[k_idx, i_rows] + mid[:, None] * joints[k_idx + 1, i_rows]
+            q_j = (1 - mid)[:, None] * joints[k_idx, j_rows] + mid[:, None] * joints[k_idx + 1, j_rows]
+            clear_k = clearance_between(
+                inst,
+                scenario.base_xy[i_rows], scenario.orient[i_rows], q_i,
+                scenario.base_xy[j_rows], scenario.orient[j_rows], q_j,
+            )
+            cmid = clear_k.min(axis=1)
+            report.probes += len(cmid)
+            t_mid = times[k_idx] + mid * (times[k_idx + 1] - times[k_idx])
+            report.min_clearance_mm = min(report.min_clearance_mm, float(cmid.min()))
+            hit = cmid < 0.0
+            if np.any(hit):
+                record(p_idx[hit], t_mid[hit], clear_k[hit])
+            # Split every surviving piece in two halves with half the motion bound.
+            half = 0.5 * bnd
+            keep = ~hit
+            new_k = np.concatenate([k_idx[keep], k_idx[keep]])
+            new_p = np.concatenate([p_idx[keep], p_idx[keep]])
+            new_lo = np.concatenate([lo[keep], mid[keep]])
+            new_hi = np.concatenate([mid[keep], hi[keep]])
+            new_clo = np.concatenate([clo[keep], cmid[keep]])
+            new_chi = np.concatenate([cmid[keep], chi[keep]])
+            new_b = np.concatenate([half[keep], half[keep]])
+            still = new_b > fraction * np.minimum(new_clo, new_chi)
+            k_idx, p_idx, lo, hi = new_k[still], new_p[still], new_lo[still], new_hi[still]
+            clo, chi, bnd = new_clo[still], new_chi[still], new_b[still]
+            # Pairs already known to collide need no further probing.
+            if worst and len(p_idx):
+                known = np.isin(p_idx, np.fromiter(worst.keys(), dtype=np.int64))
+                k_idx, p_idx, lo, hi = k_idx[~known], p_idx[~known], lo[~known], hi[~known]
+                clo, chi, bnd = clo[~known], chi[~known], bnd[~known]
+
+    for p, (t_first, t_worst, value, k) in sorted(worst.items(), key=lambda item: item[1][0]):
+        i, j = pairs[p]
+        a, b = combos[int(k)]
+        report.collisions.append(
+            CollisionEvent(
+                id_i=int(ids[i]),
+                id_j=int(ids[j]),
+                capsule_i=names[a],
+                capsule_j=names[b],
+                t_first_s=float(t_first),
+                t_worst_s=float(t_worst),
+                min_distance_mm=float(value + radii_sum[int(k)]),
+                required_mm=float(radii_sum[int(k)]),
+            )
+        )
+    return report
+
+
+def _check_limits(scenario: Scenario, trajectory: Trajectory, report: VerificationReport) -> None:
+    """Append hard-stop and speed violations (first offending sample of each positioner and joint)."""
+    inst = scenario.instrument
+    joints, times, ids = trajectory.joints, trajectory.times, scenario.ids
+    lim = inst.limits_rad
+    for axis, joint_name in enumerate(("alpha", "beta")):
+        values = joints[:, :, axis]
+        low = values < lim[axis, 0] - _ANGLE_TOL
+        high = values > lim[axis, 1] + _ANGLE_TOL
+        for mask, limit in ((low, lim[axis, 0]), (high, lim[axis, 1])):
+            for i in np.flatnonzero(mask.any(axis=0)):
+                k = int(np.argmax(mask[:, i]))
+                report.limit_violations.append(
+                    LimitViolation(int(ids[i]), joint_name, float(times[k]), float(values[k, i]), float(limit), "hard_stop")
+                )
+        if len(times) > 1:
+            speed = np.abs(np.diff(values, axis=0)) / np.diff(times)[:, None]
+            max_speed = inst.speeds_rad_s[axis]
+            fast = speed > max_speed * (1 + _SPEED_REL_TOL) + 1e-12
+            for i in np.flatnonzero(fast.any(axis=0)):
+                k = int(np.argmax(fast[:, i]))
+                report.limit_violations.append(
+                    LimitViolation(int(ids[i]), joint_name, float(times[k]), float(speed[k, i]), float(max_speed), "speed")
+                )
