@@ -76,6 +76,7 @@ class Instrument:
     capsules: tuple[Capsule, ...]
     description: str = ""
     sources: dict[str, str] = field(default_factory=dict, compare=False, hash=False)
+    planner_defaults: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
     spec: dict[str, Any] | None = field(default=None, compare=False, hash=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -106,6 +107,18 @@ class Instrument:
             raise InstrumentError(f"instrument {self.name!r}: datum {np.degrees(self.datum_rad)} deg is outside the joint limits")
 
     # ------------------------------------------------------------------ derived values
+    @property
+    def control_dt_s(self) -> float:
+        """Default control / sample period of planners for this instrument (s).
+
+        Read from ``[planner_defaults] dt_s``; otherwise the time in which the fiber tip,
+        both joints at full speed, moves 0.25 mm (rounded to 5 ms steps).
+        """
+        if "dt_s" in self.planner_defaults:
+            return float(self.planner_defaults["dt_s"])
+        tip_speed = self.alpha_arm_mm * self.alpha_speed_rad_s + self.beta_arm_mm * (self.alpha_speed_rad_s + self.beta_speed_rad_s)
+        return max(0.005, round(0.25 / tip_speed / 0.005) * 0.005)
+
     @property
     def speeds_rad_s(self) -> np.ndarray:
         """Maximum joint speeds ``[alpha, beta]`` in rad/s."""
@@ -295,6 +308,7 @@ def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> In
             tolerance_mm=float(motion["tolerance_mm"]),
             capsules=capsules,
             sources={str(k): str(v) for k, v in data.get("sources", {}).items()},
+            planner_defaults=copy.deepcopy(dict(data.get("planner_defaults", {}))),
             spec=copy.deepcopy(data),
         )
     except KeyError as e:

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fiberplan.errors import PlannerError
+from fiberplan.instrument import Instrument
 from fiberplan.kinematics import move_times
 from fiberplan.planners import ProgressCallback
 from fiberplan.scenario import Scenario
@@ -26,10 +27,16 @@ class StraightSettings:
     """Settings of the ``straight`` planner.
 
     Attributes:
-        dt_s: sample spacing of the output trajectory (s).
+        dt_s: sample spacing of the output trajectory (s); default the instrument's
+            control period (``Instrument.control_dt_s``).
     """
 
     dt_s: float = 0.01
+
+    @classmethod
+    def for_instrument(cls, instrument: Instrument) -> StraightSettings:
+        """Defaults for an instrument."""
+        return cls(dt_s=instrument.control_dt_s)
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.dt_s) and self.dt_s > 0):
