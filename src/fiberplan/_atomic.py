@@ -20,11 +20,15 @@ def atomic_path(final_path: str | os.PathLike[str]) -> Iterator[Path]:
     final = Path(final_path)
     directory = final.parent if str(final.parent) else Path(".")
     directory.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".part", dir=directory)
+    # The temporary name keeps the final suffix: some writers pick the format from it.
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=f".part{final.suffix}", dir=directory)
     os.close(fd)
     tmp = Path(tmp_name)
     try:
         yield tmp
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, final)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

@@ -38,7 +38,7 @@ from fiberplan._atomic import atomic_path
 from fiberplan.errors import InstrumentError, ScenarioError
 from fiberplan.geometry import min_pair_clearance
 from fiberplan.instrument import Instrument, instrument_from_dict, load_instrument
-from fiberplan.kinematics import best_parity_joints, fiber_positions, inverse_kinematics
+from fiberplan.kinematics import best_parity_joints, fiber_positions, inverse_kinematics, parity_of
 from fiberplan.layout import neighbour_pairs
 
 FORMAT_NAME = "fiberplan-scenario"
@@ -158,7 +158,32 @@ class Scenario:
             fixed = inverse_kinematics(inst, base, orient, xy, np.where(parity == 0, 1, parity))
             best = best_parity_joints(inst, base, orient, xy, self.start[xy_rows])
             goal[xy_rows] = np.where((parity == 0)[:, None], best, fixed)
+            self._untangle_free_parities(goal, xy_rows[parity == 0])
         return goal
+
+    def _untangle_free_parities(self, goal: np.ndarray, free_rows: np.ndarray) -> None:
+        """Flip free-parity targets whose faster solution collides with a neighbour's goal.
+
+        The faster parity is chosen per positioner; where two such goals collide, the other
+        parity of a free positioner is tried (each at most once), in place on ``goal``.
+        """
+        if len(free_rows) == 0 or len(self.pairs) == 0:
+            return
+        inst = self.instrument
+        flippable = np.zeros(self.n_positioners, dtype=bool)
+        flippable[free_rows] = True
+        for _ in range(8):
+            clearance = min_pair_clearance(inst, self.base_xy, self.orient, goal, self.pairs)
+            rows = np.unique(self.pairs[clearance < 0.0].ravel())
+            rows = rows[flippable[rows]]
+            if len(rows) == 0:
+                return
+            other = inverse_kinematics(
+                inst, self.base_xy[rows], self.orient[rows], self.target_values[rows], -parity_of(goal[rows, 1])
+            )
+            ok = ~np.isnan(other[:, 0])
+            goal[rows[ok]] = other[ok]
+            flippable[rows] = False
 
     def _validate(self) -> None:
         inst = self.instrument

@@ -1,0 +1,282 @@
+"""The ``fiberplan`` command line: plan, verify, show, animate, scenario, instruments, planners.
+
+Exit status: 0 success; 1 ``verify`` found a collision or limit violation (or ``plan
+--strict`` did); 2 bad input (unknown preset, malformed file, invalid scenario, bad
+setting...), reported in one line without a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import click
+
+from fiberplan.errors import FiberplanError
+
+DEFAULT_PLANNER = "mpc"
+
+
+def _json_ready(value: Any) -> Any:
+    """Replace NaN / inf by None so that the output is strict JSON."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_ready(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_json_ready(v) for v in value]
+    return value
+
+
+def _print_table(summary: dict[str, Any], keys: Sequence[str]) -> None:
+    width = max(len(k) for k in keys)
+    for key in keys:
+        value = summary.get(key)
+        if isinstance(value, float):
+            text = "n/a" if not math.isfinite(value) else f"{value:.4g}"
+        else:
+            text = "n/a" if value is None else str(value)
+        click.echo(f"  {key:<{width}}  {text}")
+
+
+def _parse_settings(pairs: Sequence[str]) -> dict[str, Any]:
+    settings: dict[str, Any] = {}
+    for item in pairs:
+        if "=" not in item:
+            raise click.BadParameter(f"expected KEY=VALUE, found {item!r}", param_hint="--set")
+        key, raw = item.split("=", 1)
+        try:
+            settings[key.strip()] = json.loads(raw)
+        except json.JSONDecodeError:
+            settings[key.strip()] = raw
+    return settings
+
+
+_SUMMARY_KEYS = (
+    "planner", "instrument", "scenario_kind", "n_positioners", "seed", "reached", "success_rate", "deadlocked",
+    "failed", "collisions", "limit_violations", "makespan_s", "lower_bound_s", "makespan_over_bound", "plan_wall_s",
+)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="fiberplan")
+def cli() -> None:
+    """Plan collision-free motions for theta-phi fiber positioners, verify and look at them."""
+
+
+def _build_scenario(scenario_file: Path | None, instrument: str, positioners: int, radius_mm: float | None, kind: str, seed: int) -> Any:
+    if scenario_file is not None:
+        from fiberplan.scenario import load_scenario
+
+        return load_scenario(scenario_file)
+    from fiberplan.generate import make_scenario
+
+    return make_scenario(instrument, positioners, kind, seed, radius_mm=radius_mm)
+
+
+@cli.command()
+@click.option("--instrument", default="desi", show_default=True, help="Preset name (desi, moons, sdss) or instrument .toml file.")
+@click.option("--positioners", "-n", default=500, show_default=True, type=int, help="Positioners in the hexagonal patch.")
+@click.option("--radius-mm", type=float, default=None, help="Lay out a full focal plane of this radius instead of a patch.")
+@click.option("--scenario-kind", default="random", show_default=True, help="random, unfold, fold or clustered.")
+@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the scenario generator.")
+@click.option("--scenario", "scenario_file", type=click.Path(path_type=Path), default=None, help="Plan this scenario file instead.")
+@click.option("--planner", default=DEFAULT_PLANNER, show_default=True, help="Planner name (see `fiberplan planners`).")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="Planner setting override (repeatable).")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="Write the trajectory to this HDF5 file.")
+@click.option("--picture", type=click.Path(path_type=Path), default=None, help="Write a PNG snapshot (first collision, else the end).")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the table.")
+@click.option("--no-verify", is_flag=True, help="Skip the independent verifier.")
+@click.option("--strict", is_flag=True, help="Exit with status 1 if the verifier finds a collision or violation.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def plan(
+    instrument: str, positioners: int, radius_mm: float | None, scenario_kind: str, seed: int, scenario_file: Path | None,
+    planner: str, settings: tuple[str, ...], out: Path | None, picture: Path | None, as_json: bool, no_verify: bool,
+    strict: bool, quiet: bool,
+) -> None:
+    """Plan a generated or given scenario, verify it, and print a summary."""
+    from tqdm import tqdm
+
+    from fiberplan.metrics import summarize
+    from fiberplan.planners import make_settings
+    from fiberplan.planners import plan as run_planner
+    from fiberplan.trajectory import save_result
+    from fiberplan.verify import verify as run_verify
+
+    overrides = _parse_settings(settings)
+    scenario = _build_scenario(scenario_file, instrument, positioners, radius_mm, scenario_kind, seed)
+    planner_settings = make_settings(planner, scenario, overrides)
+    bar = tqdm(total=1000, desc=f"{planner} x {scenario.n_positioners}", unit="‰", disable=True if quiet else None, file=sys.stderr, leave=False)
+
+    def progress(fraction: float) -> None:
+        bar.update(max(0, int(1000 * min(fraction, 1.0)) - bar.n))
+
+    try:
+        result = run_planner(scenario, planner, planner_settings, progress=progress)
+    finally:
+        bar.close()
+    report = None if no_verify else run_verify(scenario, result.trajectory)
+    summary = summarize(result, report)
+    if report is None:
+        summary["collisions"] = None
+    if out is not None:
+        save_result(result, out)
+        summary["out"] = str(out)
+    if picture is not None:
+        from fiberplan.plotting import default_snapshot_time, save_snapshot
+
+        times = [c.t_first_s for c in report.collisions] if report is not None else []
+        save_snapshot(result, picture, default_snapshot_time(result, times))
+        summary["picture"] = str(picture)
+    if as_json:
+        click.echo(json.dumps(_json_ready(summary)))
+    else:
+        click.echo(f"fiberplan plan: {scenario.name or scenario.kind}")
+        _print_table(summary, _SUMMARY_KEYS + tuple(k for k in ("out", "picture") if k in summary))
+    if report is not None and not report.ok:
+        click.echo(
+            f"warning: the verifier found {report.n_collisions} colliding pair(s) and "
+            f"{len(report.limit_violations)} limit violation(s); run `fiberplan verify` on the file for details",
+            err=True,
+        )
+        if strict:
+            sys.exit(1)
+
+
+@cli.command()
+@click.argument("file", type=click.Path(path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+@click.option("--max-events", default=20, show_default=True, help="Collision events to list in the table output.")
+def verify(file: Path, as_json: bool, max_events: int) -> None:
+    """Check a trajectory file: hard stops, speeds, collisions at and between samples.
+
+    Exits with status 1 when anything is violated.
+    """
+    from fiberplan.metrics import summarize
+    from fiberplan.trajectory import load_result
+    from fiberplan.verify import verify as run_verify
+
+    result = load_result(file)
+    report = run_verify(result.scenario, result.trajectory)
+    summary = summarize(result, report)
+    if as_json:
+        payload = summary | {"report": report.to_dict()}
+        click.echo(json.dumps(_json_ready(payload)))
+    else:
+        click.echo(f"fiberplan verify: {file}")
+        _print_table(summary, (*_SUMMARY_KEYS, "verified_ok", "min_clearance_mm"))
+        for event in report.collisions[:max_events]:
+            click.echo(
+                f"  collision: positioners {event.id_i} ({event.capsule_i}) and {event.id_j} ({event.capsule_j}) "
+                f"from t = {event.t_first_s:.3f} s, worst at t = {event.t_worst_s:.3f} s: distance "
+                f"{event.min_distance_mm:.3f} mm < {event.required_mm:.3f} mm"
+            )
+        if report.n_collisions > max_events:
+            click.echo(f"  ... and {report.n_collisions - max_events} more colliding pairs (use --json for all)")
+        for v in report.limit_violations[:max_events]:
+            click.echo(f"  {v.kind} violation: positioner {v.positioner_id} {v.joint} at t = {v.t_s:.3f} s: {v.value:.5g} vs limit {v.limit:.5g}")
+        if report.start_mismatch_ids:
+            click.echo(f"  trajectory does not start at the scenario start for positioners {report.start_mismatch_ids[:10]}")
+    if not report.ok:
+        sys.exit(1)
+
+
+@cli.command()
+@click.argument("file", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="PNG (or PDF/SVG) to write.")
+@click.option("--time", "t", type=float, default=None, help="Instant to draw (s); default the first collision, else the end.")
+def show(file: Path, out: Path, t: float | None) -> None:
+    """Draw a snapshot of a run: arms, capsules, targets, collisions in red."""
+    from fiberplan.plotting import default_snapshot_time, save_snapshot
+    from fiberplan.trajectory import load_result
+    from fiberplan.verify import verify as run_verify
+
+    result = load_result(file)
+    if t is None:
+        report = run_verify(result.scenario, result.trajectory)
+        t = default_snapshot_time(result, [c.t_first_s for c in report.collisions])
+    save_snapshot(result, out, t)
+    click.echo(f"wrote {out} (t = {t:.3f} s)")
+
+
+@cli.command()
+@click.argument("file", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="GIF (or MP4 with ffmpeg) to write.")
+@click.option("--fps", default=20, show_default=True)
+@click.option("--frames", default=120, show_default=True, help="Largest number of frames.")
+def animate(file: Path, out: Path, fps: int, frames: int) -> None:
+    """Animate a run."""
+    from fiberplan.plotting import save_animation
+    from fiberplan.trajectory import load_result
+
+    result = load_result(file)
+    save_animation(result, out, fps=fps, max_frames=frames)
+    click.echo(f"wrote {out}")
+
+
+@cli.command()
+@click.option("--instrument", default="desi", show_default=True)
+@click.option("--positioners", "-n", default=500, show_default=True, type=int)
+@click.option("--radius-mm", type=float, default=None)
+@click.option("--kind", default="random", show_default=True, help="random, unfold, fold or clustered.")
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Scenario JSON file to write.")
+def scenario(instrument: str, positioners: int, radius_mm: float | None, kind: str, seed: int, out: Path) -> None:
+    """Generate a seeded scenario and write it as JSON."""
+    from fiberplan.generate import make_scenario
+
+    sc = make_scenario(instrument, positioners, kind, seed, radius_mm=radius_mm)
+    sc.save(out)
+    click.echo(f"wrote {out} ({sc.n_positioners} positioners, {sc.kind}, seed {sc.seed})")
+
+
+@cli.command()
+@click.argument("name", required=False)
+def instruments(name: str | None) -> None:
+    """List the instrument presets, or show one with the source of every number."""
+    from fiberplan.instrument import load_instrument, preset_names
+
+    if name is None:
+        for preset in preset_names():
+            click.echo(f"{preset:8s} {load_instrument(preset).description}")
+        return
+    inst = load_instrument(name)
+    click.echo(json.dumps(inst.to_dict(), indent=2))
+
+
+@cli.command()
+def planners() -> None:
+    """List the registered planners."""
+    from fiberplan.planners import planner_names
+
+    for name in planner_names():
+        click.echo(name)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Entry point: run the CLI, turning fiberplan errors into one line and exit status 2."""
+    try:
+        cli.main(args=list(argv) if argv is not None else None, prog_name="fiberplan", standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        sys.exit(130)
+    except click.ClickException as e:
+        e.show()
+        sys.exit(e.exit_code)
+    except FiberplanError as e:
+        click.echo(f"fiberplan: error: {e}", err=True)
+        sys.exit(2)
+    except OSError as e:
+        click.echo(f"fiberplan: error: {e.strerror or e}: {e.filename or ''}".rstrip(": "), err=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        click.echo("interrupted", err=True)
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

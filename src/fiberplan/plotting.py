@@ -1,0 +1,172 @@
+"""Pictures of positioners: snapshots of arms, capsules and targets, and animations of runs.
+
+Everything draws on matplotlib axes (``Agg`` is enough; no screen is needed). Colliding
+positioners are drawn in red.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
+from matplotlib.axes import Axes  # noqa: E402
+from matplotlib.collections import LineCollection, PolyCollection  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+
+from fiberplan._atomic import atomic_path  # noqa: E402
+from fiberplan.geometry import capsule_segments, min_pair_clearance  # noqa: E402
+from fiberplan.kinematics import elbow_positions, fiber_positions  # noqa: E402
+from fiberplan.scenario import Scenario  # noqa: E402
+from fiberplan.trajectory import PlanResult  # noqa: E402
+
+_ARC_POINTS = 10
+_OK_COLOUR = "#4a7fb5"
+_HIT_COLOUR = "#d62728"
+
+
+def _capsule_polygons(start: np.ndarray, end: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Outline polygons ``(M, 2 * _ARC_POINTS, 2)`` of capsules with segments ``start -> end``."""
+    direction = end - start
+    length = np.linalg.norm(direction, axis=-1, keepdims=True)
+    unit = np.where(length > 1e-12, direction / np.maximum(length, 1e-12), np.array([1.0, 0.0]))
+    heading = np.arctan2(unit[:, 1], unit[:, 0])
+    arc = np.linspace(-np.pi / 2, np.pi / 2, _ARC_POINTS)
+    ang_end = heading[:, None] + arc[None, :]
+    ang_start = heading[:, None] + np.pi + arc[None, :]
+    r = radius[:, None]
+    cap_end = end[:, None, :] + r[..., None] * np.stack([np.cos(ang_end), np.sin(ang_end)], axis=-1)
+    cap_start = start[:, None, :] + r[..., None] * np.stack([np.cos(ang_start), np.sin(ang_start)], axis=-1)
+    return np.concatenate([cap_end, cap_start], axis=1)
+
+
+def colliding_rows(scenario: Scenario, joints: np.ndarray) -> np.ndarray:
+    """Rows of positioners that collide with a neighbour in configuration ``joints``."""
+    pairs = scenario.pairs
+    if len(pairs) == 0:
+        return np.zeros(0, dtype=np.int64)
+    clearance = min_pair_clearance(scenario.instrument, scenario.base_xy, scenario.orient, joints, pairs)
+    return np.unique(pairs[clearance < 0.0].ravel())
+
+
+class _Frame:
+    """Artists of one snapshot, updatable for animations."""
+
+    def __init__(self, ax: Axes, scenario: Scenario, show_targets: bool) -> None:
+        self.ax = ax
+        self.scenario = scenario
+        inst = scenario.instrument
+        n = scenario.n_positioners
+        self.radii = np.tile([c.radius_mm for c in inst.capsules], n)
+        theta = np.linspace(0, 2 * np.pi, 48)
+        rings = scenario.base_xy[:, None, :] + inst.reach_max_mm * np.stack([np.cos(theta), np.sin(theta)], axis=-1)[None]
+        ax.add_collection(LineCollection(list(rings), colors="#cccccc", linewidths=0.4, zorder=0))
+        ax.plot(scenario.base_xy[:, 0], scenario.base_xy[:, 1], ".", color="#888888", markersize=2, zorder=1)
+        if show_targets:
+            tx = scenario.target_xy[scenario.has_target]
+            ax.plot(tx[:, 0], tx[:, 1], "x", color="#2ca02c", markersize=3, mew=0.8, zorder=4, label="target")
+        self.capsules = PolyCollection([], facecolors=_OK_COLOUR, edgecolors="none", alpha=0.55, zorder=2)
+        ax.add_collection(self.capsules)
+        self.arms = LineCollection([], colors="#222222", linewidths=0.6, zorder=3)
+        ax.add_collection(self.arms)
+        lo = scenario.base_xy.min(axis=0) - inst.extent_mm
+        hi = scenario.base_xy.max(axis=0) + inst.extent_mm
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [mm]")
+        ax.set_ylabel("y [mm]")
+
+    def update(self, joints: np.ndarray, title: str) -> int:
+        sc = self.scenario
+        inst = sc.instrument
+        start, end = capsule_segments(inst, sc.base_xy, sc.orient, joints)
+        polys = _capsule_polygons(start.reshape(-1, 2), end.reshape(-1, 2), self.radii)
+        hit = colliding_rows(sc, joints)
+        colours = np.full(sc.n_positioners, _OK_COLOUR, dtype=object)
+        colours[hit] = _HIT_COLOUR
+        self.capsules.set_verts(list(polys))
+        self.capsules.set_facecolors(np.repeat(colours, len(inst.capsules)).tolist())
+        elbow = elbow_positions(inst, sc.base_xy, sc.orient, joints)
+        fiber = fiber_positions(inst, sc.base_xy, sc.orient, joints)
+        segs = np.concatenate([np.stack([sc.base_xy, elbow], axis=1), np.stack([elbow, fiber], axis=1)])
+        self.arms.set_segments(list(segs))
+        self.ax.set_title(title + (f"   {len(hit)} positioners colliding" if len(hit) else ""), fontsize=9)
+        return len(hit)
+
+
+def plot_snapshot(
+    scenario: Scenario,
+    joints: np.ndarray | None = None,
+    *,
+    ax: Axes | None = None,
+    title: str = "",
+    show_targets: bool = True,
+) -> Figure:
+    """Draw arms, capsules (red where colliding), patrol circles and targets.
+
+    Args:
+        scenario: the positioners.
+        joints: ``(N, 2)`` configuration (rad); the start configuration by default.
+        ax: axes to draw on (a new figure by default).
+        title: figure title.
+        show_targets: mark the targets.
+    """
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(7, 7))
+    else:
+        fig = ax.figure  # type: ignore[assignment]
+    frame = _Frame(ax, scenario, show_targets)
+    frame.update(scenario.start if joints is None else joints, title)
+    return fig  # type: ignore[return-value]
+
+
+def default_snapshot_time(result: PlanResult, collision_times: list[float]) -> float:
+    """The instant worth showing: the first collision if there is one, else the end."""
+    return min(collision_times) if collision_times else result.trajectory.duration_s
+
+
+def save_snapshot(result: PlanResult, out: str | Path, t: float, dpi: int = 150) -> Path:
+    """Write a PNG snapshot of a run at time ``t``."""
+    joints = result.trajectory.at(t)
+    fig = plot_snapshot(
+        result.scenario,
+        joints,
+        title=f"{result.planner} | {result.scenario.instrument.name} | N={result.scenario.n_positioners} | t = {t:.3f} s",
+    )
+    out = Path(out)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=dpi, format=out.suffix.lstrip(".") or "png", bbox_inches="tight")
+    plt.close(fig)
+    return out
+
+
+def save_animation(result: PlanResult, out: str | Path, *, fps: int = 20, max_frames: int = 120, dpi: int = 90) -> Path:
+    """Write an animation (GIF; MP4 if ``out`` ends in .mp4 and ffmpeg is present) of a run."""
+    out = Path(out)
+    traj = result.trajectory
+    n_frames = int(min(max_frames, max(2, len(traj.times))))
+    frame_times = np.linspace(0.0, traj.duration_s, n_frames)
+    fig, ax = plt.subplots(figsize=(6, 6))
+    frame = _Frame(ax, result.scenario, show_targets=True)
+    label = f"{result.planner} | {result.scenario.instrument.name} | N={result.scenario.n_positioners}"
+
+    def draw(k: int) -> list:
+        frame.update(traj.at(float(frame_times[k])), f"{label} | t = {frame_times[k]:.2f} s")
+        return [frame.capsules, frame.arms]
+
+    anim = FuncAnimation(fig, draw, frames=n_frames, blit=False)
+    with atomic_path(out) as tmp:
+        if out.suffix.lower() == ".mp4":
+            from matplotlib.animation import FFMpegWriter
+
+            anim.save(str(tmp), writer=FFMpegWriter(fps=fps), dpi=dpi)
+        else:
+            anim.save(str(tmp), writer=PillowWriter(fps=fps), dpi=dpi)
+    plt.close(fig)
+    return out

@@ -1,0 +1,105 @@
+"""The independent verifier: finds collisions (also between samples), limit and speed violations."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fiberplan.generate import make_scenario
+from fiberplan.planners import plan
+from fiberplan.scenario import TARGET_JOINTS, Scenario
+from fiberplan.trajectory import Trajectory
+from fiberplan.verify import verify
+from fiberplan.instrument import load_instrument
+
+
+def _pair_scenario(start_deg, target_deg, instrument="desi"):
+    inst = load_instrument(instrument)
+    return Scenario(
+        instrument=inst,
+        ids=np.array([7, 8]),
+        base_xy=np.array([[0.0, 0.0], [inst.pitch_mm, 0.0]]),
+        orient_deg=np.zeros(2),
+        start_deg=np.array(start_deg, dtype=float),
+        target_kind=np.full(2, TARGET_JOINTS),
+        target_values=np.array(target_deg, dtype=float),
+        target_parity=np.zeros(2, dtype=int),
+        instrument_preset=instrument,
+    )
+
+
+@pytest.mark.parametrize("instrument", ["desi", "moons", "sdss"])
+def test_straight_moves_on_random_targets_collide(instrument):
+    sc = make_scenario(instrument, 61, "random", 1)
+    report = verify(sc, plan(sc, "straight").trajectory)
+    assert report.n_collisions > 0 and not report.ok
+    event = report.collisions[0]
+    assert event.id_i in sc.ids and event.id_j in sc.ids
+    assert event.min_distance_mm < event.required_mm
+    assert 0.0 <= event.t_first_s <= event.t_worst_s
+
+
+def test_rigid_rotation_is_clear():
+    # Every positioner turns alpha by the same angle with the same beta: the arms stay
+    # translated copies of each other, so straight moves cannot collide.
+    base = make_scenario("desi", 19, "random", 0)
+    n = base.n_positioners
+    sc = Scenario(
+        instrument=base.instrument, ids=base.ids, base_xy=base.base_xy, orient_deg=np.zeros(n),
+        start_deg=np.tile([-170.0, 60.0], (n, 1)), target_kind=np.full(n, TARGET_JOINTS),
+        target_values=np.tile([170.0, 120.0], (n, 1)), target_parity=np.zeros(n, dtype=int), instrument_preset="desi",
+    )
+    report = verify(sc, plan(sc, "straight").trajectory)
+    assert report.ok and report.n_collisions == 0
+    assert report.min_clearance_mm > 0
+
+
+def test_collision_between_samples_is_found():
+    # Positioner 7 sweeps its fiber through (6, 0) where positioner 8's fiber waits at (4.4, 0);
+    # the only two samples are clear, the motion between them is not.
+    sc = _pair_scenario([[60.0, 0.0], [180.0, 0.0]], [[-60.0, 0.0], [180.0, 0.0]])
+    traj = Trajectory(np.array([0.0, 1.0]), np.stack([sc.start, sc.target]))
+    from fiberplan.geometry import min_pair_clearance
+
+    assert (min_pair_clearance(sc.instrument, sc.base_xy, sc.orient, traj.joints, sc.pairs) > 0).all()
+    report = verify(sc, traj)
+    assert report.n_collisions == 1
+    event = report.collisions[0]
+    assert (event.id_i, event.id_j) == (7, 8)
+    assert 0.0 < event.t_first_s < 1.0
+    assert event.t_worst_s == pytest.approx(0.5, abs=0.05)
+    assert event.min_distance_mm < 2.0
+
+
+def test_near_miss_between_samples_is_not_a_collision():
+    # Same sweep with positioner 8's fiber pulled back to (8.4, 0), 2 mm from its base: clearance 0.4 mm.
+    from fiberplan.kinematics import inverse_kinematics
+
+    inst = load_instrument("desi")
+    q8 = np.degrees(inverse_kinematics(inst, np.array([[10.4, 0.0]]), np.zeros(1), np.array([[8.4, 0.0]]), np.array([1]))[0])
+    sc = _pair_scenario([[60.0, 0.0], q8], [[-60.0, 0.0], q8])
+    traj = Trajectory(np.array([0.0, 1.0]), np.stack([sc.start, sc.target]))
+    report = verify(sc, traj)
+    assert report.ok
+    assert report.min_clearance_mm == pytest.approx(0.4, abs=0.05)
+
+
+def test_hard_stop_speed_and_start_violations():
+    sc = _pair_scenario([[0.0, 90.0], [180.0, 90.0]], [[0.0, 90.0], [180.0, 90.0]])
+    joints = np.stack([sc.start, sc.start, sc.start])
+    joints[1, 0, 1] = np.radians(185.0)  # beta beyond its 180 deg stop
+    joints[2, 0, 1] = np.radians(90.0)
+    joints[2, 1, 0] = np.radians(100.0)  # alpha: 80 deg in 0.01 s, far above 30 rpm
+    report = verify(sc, Trajectory(np.array([0.0, 0.5, 0.51]), joints))
+    kinds = {(v.positioner_id, v.joint, v.kind) for v in report.limit_violations}
+    assert (7, "beta", "hard_stop") in kinds
+    assert (8, "alpha", "speed") in kinds
+    assert not report.ok
+    moved = joints.copy()
+    moved[:, 1, 0] = 0.0
+    assert verify(sc, Trajectory(np.array([0.0, 0.5, 0.51]), moved)).start_mismatch_ids == [8]
+
+
+def test_fraction_must_be_a_fraction(desi_random_61):
+    with pytest.raises(ValueError, match="fraction"):
+        verify(desi_random_61, plan(desi_random_61, "straight").trajectory, fraction=1.5)
