@@ -1,1 +1,40 @@
-"""fiberplan: collision-free motion planning for theta-phi fiber positioner robots."""
+"""fiberplan: collision-free motion planning for theta-phi fiber positioner robots.
+
+The public API in five names::
+
+    from fiberplan import make_scenario, plan, verify, summarize, save_result
+"""
+
+from fiberplan.errors import FiberplanError, InstrumentError, PlannerError, ScenarioError, TrajectoryFileError
+from fiberplan.generate import SCENARIO_KINDS, make_scenario
+from fiberplan.instrument import Instrument, load_instrument, preset_names
+from fiberplan.metrics import summarize
+from fiberplan.planners import make_settings, plan, planner_names
+from fiberplan.scenario import Scenario, load_scenario
+from fiberplan.trajectory import PlanResult, Trajectory, load_result, save_result
+from fiberplan.verify import VerificationReport, verify
+
+__all__ = [
+    "SCENARIO_KINDS",
+    "FiberplanError",
+    "Instrument",
+    "InstrumentError",
+    "PlanResult",
+    "PlannerError",
+    "Scenario",
+    "ScenarioError",
+    "Trajectory",
+    "TrajectoryFileError",
+    "VerificationReport",
+    "load_instrument",
+    "load_result",
+    "load_scenario",
+    "make_scenario",
+    "make_settings",
+    "plan",
+    "planner_names",
+    "preset_names",
+    "save_result",
+    "summarize",
+    "verify",
+]
