@@ -39,6 +39,15 @@ def brute_force_distance(p0, p1, q0, q1):
     return min(_point_segment(p0, q0, q1), _point_segment(p1, q0, q1), _point_segment(q0, p0, p1), _point_segment(q1, p0, p1))
 
 
+def convex_reference_distance(p0, p1, q0, q1):
+    """Independent reference: minimise the convex function s -> dist(P(s), Q) numerically."""
+    from scipy.optimize import minimize_scalar
+
+    res = minimize_scalar(lambda s: _point_segment(p0 + s * (p1 - p0), q0, q1), bounds=(0.0, 1.0), method="bounded",
+                          options={"xatol": 1e-12})
+    return min(res.fun, _point_segment(p0, q0, q1), _point_segment(p1, q0, q1))
+
+
 @settings(max_examples=500, deadline=None)
 @given(p0=point, p1=point, q0=point, q1=point, degenerate=st.sampled_from(["none", "p", "q", "both"]))
 def test_segment_distance_matches_brute_force_and_is_symmetric(p0, p1, q0, q1, degenerate):
@@ -53,6 +62,7 @@ def test_segment_distance_matches_brute_force_and_is_symmetric(p0, p1, q0, q1, d
     assert 0.0 <= s <= 1.0 and 0.0 <= t <= 1.0
     assert d == pytest.approx(brute_force_distance(p0, p1, q0, q1), abs=1e-9)
     assert d == pytest.approx(float(d_sym), abs=1e-9)
+    assert d == pytest.approx(convex_reference_distance(p0, p1, q0, q1), abs=1e-6)
     # the closest points really are that far apart
     assert np.linalg.norm(p0 + s * (p1 - p0) - (q0 + t * (q1 - q0))) == pytest.approx(float(d), abs=1e-9)
 
@@ -122,3 +132,9 @@ def test_leading_time_axes_are_supported():
     for t in range(5):
         single = pair_clearance(inst, base, np.zeros(2), joints[t], np.array([[0, 1]])).clearance
         np.testing.assert_allclose(stacked[t], single)
+
+
+def test_tiny_segments_are_not_points():
+    # found by hypothesis: a 1e-7 mm segment ending on a point is at distance 0 from it
+    d, _, _ = segment_distance(np.zeros(2), np.zeros(2), np.array([0.0, 1.192092896e-07]), np.zeros(2))
+    assert d == 0.0

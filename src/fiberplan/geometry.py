@@ -18,7 +18,7 @@ import numpy as np
 
 from fiberplan.instrument import Instrument
 
-_EPS = 1e-12
+_EPS = 1e-12  # distances below this (mm) count as contact for gradients
 
 
 def capsule_segments(
@@ -48,47 +48,61 @@ def capsule_segments(
     return np.stack(starts, axis=-2), np.stack(ends, axis=-2)
 
 
+def _point_to_segment(p: np.ndarray, a: np.ndarray, d: np.ndarray, dd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance from points ``p`` to segments ``a + u d`` (``dd = d . d``) and the parameter ``u``."""
+    u = np.clip(np.einsum("...i,...i->...", p - a, d) / np.where(dd > 0.0, dd, 1.0), 0.0, 1.0)
+    u = np.where(dd > 0.0, u, 0.0)
+    diff = p - (a + u[..., None] * d)
+    return np.sqrt(np.einsum("...i,...i->...", diff, diff)), u
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+
 def segment_distance(
     p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Distance between segments ``[p0, p1]`` and ``[q0, q1]`` (arrays ``(..., 2)``).
+    """Distance between segments ``[p0, p1]`` and ``[q0, q1]`` in the plane (arrays ``(..., 2)``).
 
-    Closest points ``p0 + s (p1 - p0)`` and ``q0 + t (q1 - q0)`` with ``s, t`` in ``[0, 1]``
-    (Ericson, *Real-Time Collision Detection*, section 5.1.9), vectorised; zero-length
-    segments (discs) are handled.
+    In two dimensions two segments that do not cross are closest at an end point of one of
+    them, so
+
+    .. math:: d = \begin{cases} 0 & \text{the segments cross} \\
+        \min(d(p_0, Q), d(p_1, Q), d(q_0, P), d(q_1, P)) & \text{otherwise} \end{cases}
+
+    which, unlike the 3-D closest-approach formula, stays exact for (nearly) parallel and
+    zero-length segments. Vectorised over leading axes.
 
     Returns:
-        ``(distance, s, t)`` with the leading shape of the inputs.
+        ``(distance, s, t)``: closest points are ``p0 + s (p1 - p0)`` and ``q0 + t (q1 - q0)``.
     """
     d1 = p1 - p0
     d2 = q1 - q0
-    r = p0 - q0
     a = np.einsum("...i,...i->...", d1, d1)
     e = np.einsum("...i,...i->...", d2, d2)
-    f = np.einsum("...i,...i->...", d2, r)
-    c = np.einsum("...i,...i->...", d1, r)
-    b = np.einsum("...i,...i->...", d1, d2)
-    a_ok = a > _EPS
-    e_ok = e > _EPS
-    safe_a = np.where(a_ok, a, 1.0)
-    safe_e = np.where(e_ok, e, 1.0)
-    denom = a * e - b * b
-    general = np.where(denom > _EPS * np.maximum(a * e, _EPS), (b * f - c * e) / np.where(denom > 0, denom, 1.0), 0.0)
-    s = np.clip(general, 0.0, 1.0)
-    t = (b * s + f) / safe_e
-    # Clamp t and recompute s where t left [0, 1].
-    below = t < 0.0
-    above = t > 1.0
-    s = np.where(below, np.clip(-c / safe_a, 0.0, 1.0), s)
-    s = np.where(above, np.clip((b - c) / safe_a, 0.0, 1.0), s)
-    t = np.clip(t, 0.0, 1.0)
-    # Degenerate segments.
-    s = np.where(~a_ok, 0.0, s)
-    t = np.where(~a_ok, np.clip(f / safe_e, 0.0, 1.0), t)
-    s = np.where(a_ok & ~e_ok, np.clip(-c / safe_a, 0.0, 1.0), s)
-    t = np.where(~e_ok, 0.0, t)
-    diff = (p0 + s[..., None] * d1) - (q0 + t[..., None] * d2)
-    return np.sqrt(np.einsum("...i,...i->...", diff, diff)), s, t
+    dist_p0, t_p0 = _point_to_segment(p0, q0, d2, e)
+    dist_p1, t_p1 = _point_to_segment(p1, q0, d2, e)
+    dist_q0, s_q0 = _point_to_segment(q0, p0, d1, a)
+    dist_q1, s_q1 = _point_to_segment(q1, p0, d1, a)
+    cand_d = np.stack([dist_p0, dist_p1, dist_q0, dist_q1])
+    cand_s = np.stack([np.zeros_like(a), np.ones_like(a), s_q0, s_q1])
+    cand_t = np.stack([t_p0, t_p1, np.zeros_like(e), np.ones_like(e)])
+    best = np.argmin(cand_d, axis=0)[None]
+    dist = np.take_along_axis(cand_d, best, axis=0)[0]
+    s = np.take_along_axis(cand_s, best, axis=0)[0]
+    t = np.take_along_axis(cand_t, best, axis=0)[0]
+    # Proper crossing: each segment's end points lie strictly on both sides of the other.
+    r = q0 - p0
+    denom = _cross(d1, d2)
+    side_q0, side_q1 = _cross(d1, r), _cross(d1, q1 - p0)
+    side_p0, side_p1 = _cross(d2, -r), _cross(d2, p1 - q0)
+    crossing = (side_q0 * side_q1 < 0.0) & (side_p0 * side_p1 < 0.0)
+    safe = np.where(crossing, denom, 1.0)
+    s = np.where(crossing, _cross(r, d2) / safe, s)
+    t = np.where(crossing, _cross(r, d1) / safe, t)
+    dist = np.where(crossing, 0.0, dist)
+    return dist, s, t
 
 
 @dataclass(frozen=True)
