@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from fiberplan.generate import make_scenario
+from fiberplan.instrument import load_instrument
 from fiberplan.planners import plan
 from fiberplan.scenario import TARGET_JOINTS, Scenario
 from fiberplan.trajectory import Trajectory
 from fiberplan.verify import verify
-from fiberplan.instrument import load_instrument
 
 
 def _pair_scenario(start_deg, target_deg, instrument="desi"):

@@ -63,7 +63,7 @@ def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 def segment_distance(
     p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Distance between segments ``[p0, p1]`` and ``[q0, q1]`` in the plane (arrays ``(..., 2)``).
+    r"""Distance between segments ``[p0, p1]`` and ``[q0, q1]`` in the plane (arrays ``(..., 2)``).
 
     In two dimensions two segments that do not cross are closest at an end point of one of
     them, so
@@ -182,8 +182,8 @@ def pair_clearance(
         [np.cos(joints[:, 0] + orient), np.sin(joints[:, 0] + orient)], axis=-1
     )
     on_beta = np.array([c.arm == "beta" for c in instrument.capsules])
-    grad_i = np.empty(dist.shape + (2,))
-    grad_j = np.empty(dist.shape + (2,))
+    grad_i = np.empty((*dist.shape, 2))
+    grad_j = np.empty((*dist.shape, 2))
     grad_i[..., 0] = np.einsum("pki,pki->pk", normal, _perp(xi - base_xy[ii][:, None, :]))
     grad_i[..., 1] = np.einsum("pki,pki->pk", normal, _perp(xi - elbow[ii][:, None, :])) * on_beta[ca][None, :]
     grad_j[..., 0] = -np.einsum("pki,pki->pk", normal, _perp(xj - base_xy[jj][:, None, :]))
@@ -225,5 +225,5 @@ def min_pair_clearance(
 ) -> np.ndarray:
     """Smallest clearance over capsule combinations for each pair, shape ``(..., P)``."""
     if len(pairs) == 0:
-        return np.zeros(joints.shape[:-2] + (0,))
+        return np.zeros((*joints.shape[:-2], 0))
     return pair_clearance(instrument, base_xy, orient, joints, pairs).clearance.min(axis=-1)

@@ -57,7 +57,7 @@ def fiber_jacobian(instrument: Instrument, orient: np.ndarray, joints: np.ndarra
     a = joints[..., 0] + orient
     ab = a + joints[..., 1]
     l1, l2 = instrument.alpha_arm_mm, instrument.beta_arm_mm
-    jac = np.empty(joints.shape[:-1] + (2, 2))
+    jac = np.empty((*joints.shape[:-1], 2, 2))
     jac[..., 0, 1] = -l2 * np.sin(ab)
     jac[..., 1, 1] = l2 * np.cos(ab)
     jac[..., 0, 0] = -l1 * np.sin(a) + jac[..., 0, 1]

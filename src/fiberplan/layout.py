@@ -55,7 +55,7 @@ def focal_plane(radius_mm: float, pitch_mm: float) -> np.ndarray:
     """
     if not (math.isfinite(radius_mm) and radius_mm > 0):
         raise ScenarioError(f"focal-plane radius must be a positive number of mm, found {radius_mm}")
-    rings = int(math.ceil(radius_mm / (pitch_mm * math.sqrt(3) / 2))) + 1
+    rings = math.ceil(radius_mm / (pitch_mm * math.sqrt(3) / 2)) + 1
     points = _sort_from_centre(_lattice_points(rings, pitch_mm))
     points = points[np.hypot(points[:, 0], points[:, 1]) <= radius_mm + 1e-9]
     if len(points) > MAX_POSITIONERS:

@@ -12,18 +12,18 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
-from matplotlib.axes import Axes  # noqa: E402
-from matplotlib.collections import LineCollection, PolyCollection  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.animation import FuncAnimation, PillowWriter
+from matplotlib.axes import Axes
+from matplotlib.collections import LineCollection, PolyCollection
+from matplotlib.figure import Figure
 
-from fiberplan._atomic import atomic_path  # noqa: E402
-from fiberplan.geometry import capsule_segments, min_pair_clearance  # noqa: E402
-from fiberplan.kinematics import elbow_positions, fiber_positions  # noqa: E402
-from fiberplan.scenario import Scenario  # noqa: E402
-from fiberplan.trajectory import PlanResult  # noqa: E402
+from fiberplan._atomic import atomic_path
+from fiberplan.geometry import capsule_segments, min_pair_clearance
+from fiberplan.kinematics import elbow_positions, fiber_positions
+from fiberplan.scenario import Scenario
+from fiberplan.trajectory import PlanResult
 
 _ARC_POINTS = 10
 _OK_COLOUR = "#4a7fb5"

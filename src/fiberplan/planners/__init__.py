@@ -22,6 +22,8 @@ ProgressCallback = Callable[[float], None]
 _PLANNERS: dict[str, tuple[str, str, str]] = {
     # name: (module, planning function, settings dataclass)
     "straight": ("fiberplan.planners.straight", "plan_straight", "StraightSettings"),
+    "mpc": ("fiberplan.planners.mpc", "plan_mpc", "MpcSettings"),
+    "dnf": ("fiberplan.planners.dnf", "plan_dnf", "DnfSettings"),
 }
 
 
