@@ -15,8 +15,8 @@ MAX_POSITIONERS = 50_000
 
 def _lattice_points(rings: int, pitch_mm: float) -> np.ndarray:
     """All hexagonal lattice points within ``rings`` rings of the origin, shape ``(M, 2)``."""
-    q, r = np.meshgrid(np.arange(-rings, rings + 1), np.arange(-rings, rings + 1), indexing="ij")
-    q, r = q.ravel(), r.ravel()
+    grid_q, grid_r = np.meshgrid(np.arange(-rings, rings + 1), np.arange(-rings, rings + 1), indexing="ij")
+    q, r = grid_q.ravel(), grid_r.ravel()
     keep = (np.abs(q) + np.abs(r) + np.abs(q + r)) // 2 <= rings
     q, r = q[keep], r[keep]
     return np.stack([pitch_mm * (q + 0.5 * r), pitch_mm * (math.sqrt(3) / 2) * r], axis=-1)

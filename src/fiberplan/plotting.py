@@ -91,7 +91,7 @@ class _Frame:
         colours = np.full(sc.n_positioners, _OK_COLOUR, dtype=object)
         colours[hit] = _HIT_COLOUR
         self.capsules.set_verts(list(polys))
-        self.capsules.set_facecolors(np.repeat(colours, len(inst.capsules)).tolist())
+        self.capsules.set_facecolor(np.repeat(colours, len(inst.capsules)).tolist())
         elbow = elbow_positions(inst, sc.base_xy, sc.orient, joints)
         fiber = fiber_positions(inst, sc.base_xy, sc.orient, joints)
         segs = np.concatenate([np.stack([sc.base_xy, elbow], axis=1), np.stack([elbow, fiber], axis=1)])
