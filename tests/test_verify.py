@@ -103,3 +103,21 @@ def test_hard_stop_speed_and_start_violations():
 def test_fraction_must_be_a_fraction(desi_random_61):
     with pytest.raises(ValueError, match="fraction"):
         verify(desi_random_61, plan(desi_random_61, "straight").trajectory, fraction=1.5)
+
+
+def test_verifier_imports_no_planner():
+    import ast
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import fiberplan.verify as verify_module  # noqa: F401  (the module, via sys.modules)
+
+    source = Path(sys.modules["fiberplan.verify"].__file__).read_text()
+    imported = {
+        node.module for node in ast.walk(ast.parse(source)) if isinstance(node, ast.ImportFrom) and node.module
+    } | {alias.name for node in ast.walk(ast.parse(source)) if isinstance(node, ast.Import) for alias in node.names}
+    assert not any(name.startswith("fiberplan.planners") for name in imported)
+    code = "import sys, fiberplan.verify; print(sorted(m for m in sys.modules if m.startswith('fiberplan.planners.')))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "[]"

@@ -74,6 +74,7 @@ class _Frame:
         ax.add_collection(self.capsules)
         self.arms = LineCollection([], colors="#222222", linewidths=0.6, zorder=3)
         ax.add_collection(self.arms)
+        (self.alarm,) = ax.plot([], [], "o", mfc="none", mec=_HIT_COLOUR, ms=14, mew=1.2, zorder=5)
         lo = scenario.base_xy.min(axis=0) - inst.extent_mm
         hi = scenario.base_xy.max(axis=0) + inst.extent_mm
         ax.set_xlim(lo[0], hi[0])
@@ -96,6 +97,7 @@ class _Frame:
         fiber = fiber_positions(inst, sc.base_xy, sc.orient, joints)
         segs = np.concatenate([np.stack([sc.base_xy, elbow], axis=1), np.stack([elbow, fiber], axis=1)])
         self.arms.set_segments(list(segs))
+        self.alarm.set_data(sc.base_xy[hit, 0], sc.base_xy[hit, 1])
         self.ax.set_title(title + (f"   {len(hit)} positioners colliding" if len(hit) else ""), fontsize=9)
         return len(hit)
 
@@ -158,7 +160,7 @@ def save_animation(result: PlanResult, out: str | Path, *, fps: int = 20, max_fr
 
     def draw(k: int) -> list:
         frame.update(traj.at(float(frame_times[k])), f"{label} | t = {frame_times[k]:.2f} s")
-        return [frame.capsules, frame.arms]
+        return [frame.capsules, frame.arms, frame.alarm]
 
     anim = FuncAnimation(fig, draw, frames=n_frames, blit=False)
     with atomic_path(out) as tmp:
