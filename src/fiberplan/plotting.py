@@ -172,3 +172,37 @@ def save_animation(result: PlanResult, out: str | Path, *, fps: int = 20, max_fr
             anim.save(str(tmp), writer=PillowWriter(fps=fps), dpi=dpi)
     plt.close(fig)
     return out
+
+
+def plot_joint_profiles(result: PlanResult, ids: list[int] | None = None, *, max_positioners: int = 4) -> Figure:
+    """Joint angle and joint speed profiles of chosen positioners (as reference 000, figs. 7-8).
+
+    Args:
+        result: a planned run.
+        ids: positioner ids to draw; default the ``max_positioners`` with the longest moves.
+        max_positioners: how many to pick when ``ids`` is not given.
+    """
+    scenario, traj = result.scenario, result.trajectory
+    if ids is None:
+        travel = np.abs(scenario.target - scenario.start).sum(axis=1)
+        rows = np.argsort(-travel)[:max_positioners]
+    else:
+        rows = np.array([scenario.index_of(i) for i in ids])
+    fig, axes = plt.subplots(2, 2, figsize=(10, 6), sharex=True)
+    dt = np.diff(traj.times)
+    speed = np.diff(traj.joints, axis=0) / dt[:, None, None]
+    limits = scenario.instrument.speeds_rad_s
+    for col, joint in enumerate(("alpha", "beta")):
+        for row in rows:
+            label = f"positioner {scenario.ids[row]}"
+            axes[0, col].plot(traj.times, np.degrees(traj.joints[:, row, col]), label=label)
+            axes[1, col].step(traj.times[:-1], np.degrees(speed[:, row, col]), where="post", label=label)
+        for sign in (-1, 1):
+            axes[1, col].axhline(sign * np.degrees(limits[col]), color="#999999", lw=0.8, ls="--")
+        axes[0, col].set_ylabel(f"{joint} [deg]")
+        axes[1, col].set_ylabel(f"{joint} speed [deg/s]")
+        axes[1, col].set_xlabel("time [s]")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"{result.planner} | {scenario.instrument.name} | joint profiles", fontsize=10)
+    fig.tight_layout()
+    return fig
