@@ -257,6 +257,55 @@ def planners() -> None:
         click.echo(name)
 
 
+@cli.command()
+@click.argument("spec", type=click.Path(path_type=Path))
+@click.option("--scheduler", default=None, help="Address of a Dask distributed scheduler (default: a local process pool).")
+@click.option("--workers", type=int, default=None, help="Local worker processes (default: all cores).")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def sweep(spec: Path, scheduler: str | None, workers: int | None, quiet: bool) -> None:
+    """Run a study file: every grid cell x seed, results in a Parquet table.
+
+    Re-running the same command after an interruption skips the finished runs.
+    """
+    from fiberplan.study import finished_tasks, load_study, run_study
+
+    study = load_study(spec)
+    already = len(finished_tasks(study))
+    click.echo(f"study {study.name}: {len(study.tasks)} runs, {already} already done -> {study.out}", err=True)
+    rows = run_study(study, workers=workers, scheduler=scheduler, progress=not quiet)
+    import pandas as pd
+
+    table = pd.read_parquet(study.out)
+    errors = int((table["status"] != "ok").sum())
+    click.echo(f"wrote {study.out}: {rows} runs ({errors} with errors)")
+
+
+@cli.command("study-plot")
+@click.argument("results", type=click.Path(path_type=Path))
+@click.option("--kind", type=click.Choice(["rates", "scaling", "makespan"]), default="rates", show_default=True)
+@click.option("--x", "x", default="n_positioners", show_default=True, help="Column on the x axis (rates).")
+@click.option("--by", default="planner", show_default=True, help="Column separating curves / boxes.")
+@click.option("--rate", type=click.Choice(["deadlock", "success"]), default="deadlock", show_default=True)
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Image to write.")
+def study_plot(results: Path, kind: str, x: str, by: str, rate: str, out: Path) -> None:
+    """Plot a study table: rates with error bars, plan time vs N, or makespan / lower bound."""
+    from fiberplan.plotting import plot_makespan_ratio, plot_rates, plot_scaling, save_figure
+    from fiberplan.study import StudyError, load_results, rates
+
+    frame = load_results(results)
+    for column in (x, by) if kind == "rates" else (by,):
+        if column not in frame.columns:
+            raise StudyError(f"{results}: no column {column!r}; columns are {', '.join(map(str, frame.columns))}")
+    if kind == "rates":
+        fig = plot_rates(rates(frame, [x, by]), x, hue=by, rate=rate)
+    elif kind == "scaling":
+        fig = plot_scaling(frame, hue=by)
+    else:
+        fig = plot_makespan_ratio(frame, by=by)
+    save_figure(fig, out)
+    click.echo(f"wrote {out}")
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point: run the CLI, turning fiberplan errors into one line and exit status 2."""
     try:

@@ -7,6 +7,7 @@ positioners are drawn in red.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -206,3 +207,86 @@ def plot_joint_profiles(result: PlanResult, ids: list[int] | None = None, *, max
     fig.suptitle(f"{result.planner} | {scenario.instrument.name} | joint profiles", fontsize=10)
     fig.tight_layout()
     return fig
+
+
+# ------------------------------------------------------------------------------ study plots
+
+
+def plot_rates(rates_frame: Any, x: str, *, hue: str | None = "planner", rate: str = "deadlock", ax: Axes | None = None) -> Figure:
+    """Deadlock (or success) rate against a parameter, with Wilson-interval error bars.
+
+    Args:
+        rates_frame: output of :func:`fiberplan.study.rates` grouped by ``x`` (and ``hue``).
+        x: column on the horizontal axis (e.g. ``n_positioners``, ``setting.lambda_ratio``).
+        hue: column separating the curves (e.g. ``planner``), or None.
+        rate: ``deadlock`` or ``success``.
+    """
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(6.5, 4))
+    else:
+        fig = ax.figure  # type: ignore[assignment]
+    groups = [(None, rates_frame)] if hue is None else list(rates_frame.groupby(hue))
+    for label, group in groups:
+        group = group.sort_values(x)
+        value = group[f"{rate}_rate"].to_numpy()
+        err = np.clip(np.vstack([value - group[f"{rate}_lo"].to_numpy(), group[f"{rate}_hi"].to_numpy() - value]), 0.0, None)
+        ax.errorbar(group[x], value, yerr=err, marker="o", capsize=3, label=None if label is None else str(label))
+    ax.set_xlabel(x)
+    ax.set_ylabel(f"{rate} rate (95 % Wilson interval)")
+    if hue is not None:
+        ax.legend(title=hue)
+    ax.grid(alpha=0.3)
+    return fig  # type: ignore[return-value]
+
+
+def plot_scaling(frame: Any, *, hue: str = "planner", ax: Axes | None = None) -> Figure:
+    """Plan wall time against the number of positioners on log-log axes (median and range)."""
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(6.5, 4))
+    else:
+        fig = ax.figure  # type: ignore[assignment]
+    ok = frame[frame["status"] == "ok"]
+    for label, group in ok.groupby(hue):
+        stats = group.groupby("n_positioners")["plan_wall_s"].agg(["median", "min", "max"]).reset_index()
+        ax.plot(stats["n_positioners"], stats["median"], "o-", label=str(label))
+        ax.fill_between(stats["n_positioners"], stats["min"], stats["max"], alpha=0.2)
+    n = np.array(sorted(ok["n_positioners"].unique()), dtype=float)
+    if len(n) > 1:
+        ref = ok.groupby("n_positioners")["plan_wall_s"].median().to_numpy()
+        ax.plot(n, ref[0] * n / n[0], "k--", lw=0.8, label="linear")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("positioners")
+    ax.set_ylabel("plan wall time [s]")
+    ax.legend()
+    ax.grid(alpha=0.3, which="both")
+    return fig  # type: ignore[return-value]
+
+
+def plot_makespan_ratio(frame: Any, *, by: str = "planner", ax: Axes | None = None) -> Figure:
+    """Distribution of makespan / lower bound per group (box plot over runs)."""
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(6.5, 4))
+    else:
+        fig = ax.figure  # type: ignore[assignment]
+    ok = frame[(frame["status"] == "ok") & np.isfinite(frame["makespan_over_bound"])]
+    labels, data = [], []
+    for label, group in ok.groupby(by):
+        labels.append(str(label))
+        data.append(group["makespan_over_bound"].to_numpy())
+    if data:
+        ax.boxplot(data, tick_labels=labels)
+    ax.axhline(1.0, color="#999999", ls="--", lw=0.8)
+    ax.set_ylabel("makespan / lower bound")
+    ax.set_xlabel(by)
+    ax.grid(alpha=0.3, axis="y")
+    return fig  # type: ignore[return-value]
+
+
+def save_figure(fig: Figure, out: str | Path, dpi: int = 150) -> Path:
+    """Save a figure atomically and close it."""
+    out = Path(out)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format=out.suffix.lstrip(".") or "png")
+    plt.close(fig)
+    return out

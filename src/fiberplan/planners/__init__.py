@@ -46,6 +46,15 @@ def _lookup(name: str) -> tuple[PlannerFunction, type]:
     return getattr(module, func_name), getattr(module, settings_name)
 
 
+def settings_class(name: str) -> type:
+    """The settings dataclass of planner ``name`` (its fields are the planner's settings).
+
+    Raises:
+        PlannerError: unknown planner.
+    """
+    return _lookup(name)[1]
+
+
 def make_settings(name: str, scenario: Scenario, overrides: Mapping[str, Any] | None = None) -> Any:
     """Settings dataclass of planner ``name`` with the instrument's defaults and ``overrides``.
 
