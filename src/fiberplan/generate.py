@@ -168,6 +168,7 @@ def make_scenario(
     radius_mm: float | None = None,
     random_orientation: bool = False,
     clusters: int | None = None,
+    cluster_fraction: float = 0.8,
 ) -> Scenario:
     """Generate a seeded scenario on a hexagonal patch (or a full focal plane by radius).
 
@@ -179,6 +180,8 @@ def make_scenario(
         radius_mm: lay out every lattice point within this radius instead of a patch.
         random_orientation: draw each base orientation uniformly (default: all zero).
         clusters: number of target clusters for ``clustered`` (default one per 8 positioners).
+        cluster_fraction: share of the target density in the clusters for ``clustered``
+            (0: uniform targets, close to 1: crowded clusters); a knob for target density.
 
     Raises:
         ScenarioError: unknown kind, bad size, or no collision-free configuration found.
@@ -207,7 +210,9 @@ def make_scenario(
     if kind == "fold":
         target = datum
     elif kind == "clustered":
-        sampler = clustered_sampler(inst, base, rng, n_clusters=clusters)
+        if not 0.0 <= cluster_fraction <= 1.0:
+            raise ScenarioError(f"cluster_fraction must lie in [0, 1], found {cluster_fraction}")
+        sampler = clustered_sampler(inst, base, rng, n_clusters=clusters, background=1.0 - cluster_fraction)
         target = random_configuration(inst, base, orient, pairs, rng, sampler=sampler)
     else:
         target = random_configuration(inst, base, orient, pairs, rng)

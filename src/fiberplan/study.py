@@ -27,8 +27,11 @@ Study file layout::
     planner = ["dnf", "mpc"]
     seeds = 20                       # seeds 0..19; or a list [3, 5, 8]
 
+    [scenario]                       # options of make_scenario; lists are grid axes
+    cluster_fraction = [0.0, 0.5, 0.9]
+
     [settings.dnf]                   # per-planner settings; lists are grid axes
-    lambda_ratio = [0.5, 1.0]
+    lambda_2 = [0.05, 0.2]
 """
 
 from __future__ import annotations
@@ -55,6 +58,8 @@ from fiberplan._atomic import atomic_path
 from fiberplan.errors import FiberplanError
 
 GRID_KEYS = ("instrument", "n_positioners", "scenario_kind", "planner")
+SCENARIO_OPTIONS = ("clusters", "cluster_fraction", "random_orientation", "radius_mm")
+"""Keyword arguments of :func:`fiberplan.generate.make_scenario` a study may vary (``[scenario]``)."""
 
 
 class StudyError(FiberplanError, ValueError):
@@ -71,6 +76,7 @@ class Task:
     planner: str
     seed: int
     settings: tuple[tuple[str, Any], ...] = ()
+    scenario_options: tuple[tuple[str, Any], ...] = ()
 
     @property
     def key(self) -> str:
@@ -83,6 +89,7 @@ class Task:
                 "planner": self.planner,
                 "seed": self.seed,
                 "settings": dict(self.settings),
+                **({"scenario": dict(self.scenario_options)} if self.scenario_options else {}),
             },
             sort_keys=True,
         )
@@ -151,6 +158,13 @@ def expand_grid(data: Mapping[str, Any], origin: str = "study") -> list[Task]:
     if not seeds:
         raise StudyError(f"{origin}: no seeds")
     settings_tables = data.get("settings", {})
+    scenario_table = dict(data.get("scenario", {}))
+    allowed = set(SCENARIO_OPTIONS)
+    unknown_options = sorted(set(scenario_table) - allowed)
+    if unknown_options:
+        raise StudyError(f"{origin}: unknown scenario option {unknown_options[0]!r}; choose from {', '.join(sorted(allowed))}")
+    option_names = sorted(scenario_table)
+    option_combos = list(itertools.product(*(_as_list(scenario_table[n]) for n in option_names))) if option_names else [()]
     tasks: list[Task] = []
     for planner in planners:
         table = dict(settings_tables.get(planner, {}))
@@ -161,9 +175,31 @@ def expand_grid(data: Mapping[str, Any], origin: str = "study") -> list[Task]:
             raise StudyError(f"{origin}: planner {planner!r} has no setting {unknown[0]!r}; its settings are {', '.join(sorted(known))}")
         names = sorted(table)
         combos = list(itertools.product(*(_as_list(table[n]) for n in names))) if names else [()]
-        for instrument, n, kind, combo, seed in itertools.product(instruments, sizes, kinds, combos, seeds):
-            tasks.append(Task(instrument, n, kind, planner, seed, tuple(zip(names, combo, strict=True))))
+        for instrument, n, kind, options, combo, seed in itertools.product(instruments, sizes, kinds, option_combos, combos, seeds):
+            tasks.append(
+                Task(
+                    instrument, n, kind, planner, seed,
+                    tuple(zip(names, combo, strict=True)),
+                    tuple(zip(option_names, options, strict=True)),
+                )
+            )
     return tasks
+
+
+def study_from_dict(data: Mapping[str, Any], out: str | Path, origin: str = "study") -> StudySpec:
+    """Build a study from the file layout as a dict (for notebooks and scripts).
+
+    Raises:
+        StudyError: invalid grid.
+    """
+    study = dict(data.get("study", {}))
+    return StudySpec(
+        name=str(study.get("name", Path(out).stem)),
+        out=Path(out),
+        tasks=tuple(expand_grid(data, origin=origin)),
+        per_positioner=bool(study.get("per_positioner", False)),
+        source=dict(data),
+    )
 
 
 def load_study(path: str | Path) -> StudySpec:
@@ -179,17 +215,10 @@ def load_study(path: str | Path) -> StudySpec:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as e:
         raise StudyError(f"study file {str(path)!r} is not valid TOML ({e})") from e
-    study = data.get("study", {})
-    out = Path(study.get("out", path.with_suffix(".parquet").name))
+    out = Path(data.get("study", {}).get("out", path.with_suffix(".parquet").name))
     if not out.is_absolute():
         out = path.parent / out
-    return StudySpec(
-        name=str(study.get("name", path.stem)),
-        out=out,
-        tasks=tuple(expand_grid(data, origin=f"study file {str(path)!r}")),
-        per_positioner=bool(study.get("per_positioner", False)),
-        source=data,
-    )
+    return study_from_dict(data, out, origin=f"study file {str(path)!r}")
 
 
 def run_task(task: Task, per_positioner: bool = False) -> dict[str, Any]:
@@ -205,6 +234,8 @@ def run_task(task: Task, per_positioner: bool = False) -> dict[str, Any]:
     }
     for name, value in task.settings:
         row[f"setting.{name}"] = value
+    for name, value in task.scenario_options:
+        row[f"scenario.{name}"] = value
     t0 = time.perf_counter()
     try:
         from fiberplan.generate import make_scenario
@@ -212,7 +243,7 @@ def run_task(task: Task, per_positioner: bool = False) -> dict[str, Any]:
         from fiberplan.planners import plan
         from fiberplan.verify import verify
 
-        scenario = make_scenario(task.instrument, task.n_positioners, task.scenario_kind, task.seed)
+        scenario = make_scenario(task.instrument, task.n_positioners, task.scenario_kind, task.seed, **dict(task.scenario_options))
         result = plan(scenario, task.planner, dict(task.settings))
         report = verify(scenario, result.trajectory)
         summary = summarize(result, report)
@@ -342,6 +373,7 @@ def _crash_row(task: Task, message: str) -> dict[str, Any]:
         "seed": task.seed,
         "settings_json": json.dumps(dict(task.settings), sort_keys=True),
         **{f"setting.{k}": v for k, v in task.settings},
+        **{f"scenario.{k}": v for k, v in task.scenario_options},
         "status": "error",
         "error": message,
     }
