@@ -121,3 +121,17 @@ def test_verifier_imports_no_planner():
     code = "import sys, fiberplan.verify; print(sorted(m for m in sys.modules if m.startswith('fiberplan.planners.')))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "[]"
+
+
+@pytest.mark.parametrize("instrument", ["desi", "moons", "sdss"])
+def test_pruning_keeps_every_sampled_collision(instrument):
+    from fiberplan.geometry import min_pair_clearance
+
+    sc = make_scenario(instrument, 37, "random", 4)
+    traj = plan(sc, "straight").trajectory
+    exact = min_pair_clearance(sc.instrument, sc.base_xy, sc.orient, traj.joints, sc.pairs)  # (T, P) at samples
+    report = verify(sc, traj)
+    sampled = {tuple(sc.ids[sc.pairs[p]]) for p in np.unique(np.nonzero(exact < 0)[1])}
+    found = {(c.id_i, c.id_j) for c in report.collisions}
+    assert sampled <= found
+    assert report.min_clearance_mm <= exact.min() + 1e-12
