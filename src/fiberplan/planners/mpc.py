@@ -1,0 +1,620 @@
+"""The ``mpc`` planner: decentralised model-predictive control with per-positioner OSQP QPs.
+
+At every control step (``formulations/mpc.md``):
+
+1. Conflict detection (vectorised): a pair of neighbours is *in conflict* when its clearance
+   now, or between the two positioners' published plans at any horizon step, is below
+   ``conflict_radius_mm``. Positioners in no conflict take the saturated step toward their
+   target without a QP.
+2. Every positioner in conflict solves its own QP (:mod:`fiberplan.planners.mpc_qp`) against
+   the plans its neighbours published in the previous round (Jacobi style: the result does
+   not depend on solve order, and the solves run in parallel,
+   :mod:`fiberplan.planners.mpc_exec`). Its separation from each neighbour ``j`` at horizon
+   step ``k`` is linearised around its own previous plan ``qbar_i(k)`` and ``j``'s plan
+   ``qhat_j(k)``:
+
+   .. math:: g_{ij}(\\bar q_i(k), \\hat q_j(k)) + \\nabla_{q_i} g_{ij} \\cdot (q_i(k) - \\bar q_i(k)) \\ge m_{ij} - s_{ij}
+
+   with asymmetric margins and slack weights from priorities (the higher-priority side of a
+   pair gets the small margin and the cheap slack: the other side yields).
+3. Safety layer: the configuration every positioner will actually reach is checked with
+   exact capsule distances, together with a bound on the clearance between the two samples;
+   positioners of unsafe pairs are stopped (the lower-priority one first) until every pair is
+   safe. Holding still is always safe, so this terminates.
+4. Deadlocks: a positioner not at its target whose time-to-go has not decreased for
+   ``deadlock_window_steps`` is deadlocked; it is given top priority (its neighbours yield
+   to it). If it stays stuck for another window it retreats to its folded (datum)
+   configuration for one window, then tries again with top priority.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from fiberplan.errors import PlannerError
+from fiberplan.geometry import clearance_between, pair_clearance
+from fiberplan.instrument import Instrument
+from fiberplan.kinematics import fiber_positions
+from fiberplan.planners import ProgressCallback
+from fiberplan.planners.mpc_exec import QpBatch, make_executor
+from fiberplan.planners.mpc_qp import STATUS_FAILED, STATUS_INACCURATE, STATUS_SOLVED, OsqpOptions, QpLayout, QpWeights
+from fiberplan.scenario import Scenario
+from fiberplan.trajectory import PlanResult, Trajectory
+
+QP_SOLVERS = ("osqp", "clarabel", "proxqp", "daqp", "highs", "scs", "quadprog", "cvxopt", "piqp")
+
+
+@dataclass(frozen=True)
+class MpcSettings:
+    """Settings of the ``mpc`` planner (defaults per instrument: :meth:`for_instrument`).
+
+    Attributes:
+        dt_s: control step, also the length ``h`` of each horizon step (s).
+        horizon_steps: ``H``, steps in the prediction horizon.
+        weight_tracking: weight on the squared deviation from the time-optimal reference
+            (per squared full-speed step).
+        weight_terminal: the same on the last horizon step.
+        weight_input: weight on the squared normalised input ``u / omega_max``.
+        weight_input_change: weight on the squared change of normalised input.
+        slack_weight_linear: exact-penalty weight on the separation slacks (per mm).
+        slack_weight_quadratic: small quadratic slack weight (per mm^2).
+        priority_slack_ratio: factor on the slack weights of the higher-priority side of a pair.
+        margin_mm: separation the lower-priority side keeps in its QP (mm).
+        priority_margin_mm: separation the higher-priority side keeps in its QP (mm).
+        safety_margin_mm: smallest clearance the safety layer lets an executed step reach (mm).
+        conflict_radius_mm: pairs closer than this (now or along the published plans) get QP
+            constraints (mm).
+        max_neighbour_constraints: neighbour slots per QP; when more neighbours are in
+            conflict, the closest ones (smallest predicted clearance) are kept.
+        max_input_change: optional bound on ``|u(k+1) - u(k)| / omega_max`` per step.
+        deadlock_window_steps: steps without progress that mark a positioner deadlocked.
+        max_duration_factor: the run stops after this many times the lower bound ...
+        max_duration_extra_s: ... plus this many seconds.
+        executor: ``sequential`` or ``parallel``.
+        workers: processes of the parallel executor (the planning process counts as one).
+        qp_solver: ``osqp`` (persistent workspaces, the fast path) or a qpsolvers backend name.
+        osqp_eps: OSQP absolute and relative tolerance.
+        osqp_max_iter: OSQP iteration limit.
+    """
+
+    dt_s: float = 0.01
+    horizon_steps: int = 8
+    weight_tracking: float = 1.0
+    weight_terminal: float = 5.0
+    weight_input: float = 0.01
+    weight_input_change: float = 0.02
+    slack_weight_linear: float = 200.0
+    slack_weight_quadratic: float = 10.0
+    priority_slack_ratio: float = 0.01
+    margin_mm: float = 0.3
+    priority_margin_mm: float = 0.1
+    safety_margin_mm: float = 0.02
+    conflict_radius_mm: float = 1.0
+    max_neighbour_constraints: int = 6
+    max_input_change: float | None = None
+    deadlock_window_steps: int = 40
+    max_duration_factor: float = 4.0
+    max_duration_extra_s: float = 1.0
+    executor: str = "sequential"
+    workers: int = 2
+    qp_solver: str = "osqp"
+    osqp_eps: float = 1e-4
+    osqp_max_iter: int = 400
+
+    @classmethod
+    def for_instrument(cls, instrument: Instrument) -> MpcSettings:
+        """Defaults scaled to an instrument's control period and per-step motion.
+
+        The control step is the instrument's ``control_dt_s``; margins and the conflict
+        radius are multiples of the largest distance any capsule point moves in one step
+        (``step_motion_mm``), so slow (MOONS) and fast (DESI) motors get the same behaviour
+        per step.
+        """
+        dt = instrument.control_dt_s
+        step_mm = _step_motion_mm(instrument, dt)
+        return cls(
+            dt_s=dt,
+            margin_mm=round(1.2 * step_mm, 4),
+            priority_margin_mm=round(0.4 * step_mm, 4),
+            safety_margin_mm=round(0.1 * step_mm, 4),
+            conflict_radius_mm=round(4.0 * step_mm, 4),
+            max_duration_extra_s=round(200 * dt, 4),
+        )
+
+    def __post_init__(self) -> None:
+        positive = {
+            "dt_s": self.dt_s,
+            "weight_tracking": self.weight_tracking,
+            "weight_terminal": self.weight_terminal,
+            "slack_weight_linear": self.slack_weight_linear,
+            "max_duration_factor": self.max_duration_factor,
+            "osqp_eps": self.osqp_eps,
+        }
+        for name, value in positive.items():
+            if not (np.isfinite(value) and value > 0):
+                raise PlannerError(f"mpc: {name} must be a finite number > 0, found {value}")
+        non_negative = {
+            "weight_input": self.weight_input,
+            "weight_input_change": self.weight_input_change,
+            "slack_weight_quadratic": self.slack_weight_quadratic,
+            "priority_slack_ratio": self.priority_slack_ratio,
+            "margin_mm": self.margin_mm,
+            "priority_margin_mm": self.priority_margin_mm,
+            "safety_margin_mm": self.safety_margin_mm,
+            "conflict_radius_mm": self.conflict_radius_mm,
+            "max_duration_extra_s": self.max_duration_extra_s,
+        }
+        for name, value in non_negative.items():
+            if not (np.isfinite(value) and value >= 0):
+                raise PlannerError(f"mpc: {name} must be a finite number >= 0, found {value}")
+        for name, value in (("horizon_steps", self.horizon_steps), ("deadlock_window_steps", self.deadlock_window_steps),
+                            ("workers", self.workers), ("osqp_max_iter", self.osqp_max_iter),
+                            ("max_neighbour_constraints", self.max_neighbour_constraints)):
+            if int(value) != value or value < 1:
+                raise PlannerError(f"mpc: {name} must be an integer >= 1, found {value}")
+        if self.max_input_change is not None and not (self.max_input_change > 0):
+            raise PlannerError(f"mpc: max_input_change must be > 0 or None, found {self.max_input_change}")
+        if self.executor not in ("sequential", "parallel"):
+            raise PlannerError(f"mpc: executor must be 'sequential' or 'parallel', found {self.executor!r}")
+        if self.qp_solver not in QP_SOLVERS:
+            raise PlannerError(f"mpc: qp_solver must be one of {', '.join(QP_SOLVERS)}, found {self.qp_solver!r}")
+
+
+def _step_motion_mm(instrument: Instrument, dt_s: float) -> float:
+    """Largest distance a capsule point moves in one step at full speed (mm)."""
+    return float(
+        (instrument.alpha_point_extent_mm * instrument.alpha_speed_rad_s + instrument.beta_point_extent_mm * instrument.beta_speed_rad_s)
+        * dt_s
+    )
+
+
+def straight_path(q: np.ndarray, goal: np.ndarray, step_rad: np.ndarray, n_steps: int) -> np.ndarray:
+    """Saturated joint-space path from ``q`` toward ``goal``: ``(N, n_steps, 2)``.
+
+    .. math:: r(k) = q + \\operatorname{clip}(g - q, -k \\omega h, k \\omega h), \\quad k = 1..n
+    """
+    k = np.arange(1, n_steps + 1)[None, :, None]
+    delta = (goal - q)[:, None, :]
+    return q[:, None, :] + np.clip(delta, -k * step_rad, k * step_rad)
+
+
+@dataclass
+class _Counters:
+    qp_solves: int = 0
+    qp_solved: int = 0
+    qp_inaccurate: int = 0
+    qp_failures: int = 0
+    workspaces: int = 0
+    safety_holds: int = 0
+    safety_iterations_max: int = 0
+    retreats: int = 0
+
+
+class _SafetyLayer:
+    """Stops positioners whose executed step would bring a pair too close (exact distances)."""
+
+    def __init__(self, scenario: Scenario, floor_mm: float, subdivisions: int = 8) -> None:
+        self.inst = scenario.instrument
+        self.base = scenario.base_xy
+        self.orient = scenario.orient
+        self.pairs = scenario.pairs
+        self.floor = floor_mm
+        self.subdivisions = subdivisions
+        self.rho = np.array([self.inst.alpha_point_extent_mm, self.inst.beta_point_extent_mm])
+
+    def clearance(self, joints: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+        """Smallest clearance over capsule combinations of each pair, all at ``joints``."""
+        if len(pairs) == 0:
+            return np.zeros(0)
+        return pair_clearance(self.inst, self.base, self.orient, joints, pairs).clearance.min(axis=-1)
+
+    def _between(self, pairs: np.ndarray, qi: np.ndarray, qj: np.ndarray) -> np.ndarray:
+        """Clearance of row-matched pairs with ``i`` at ``qi`` and ``j`` at ``qj``."""
+        i, j = pairs[:, 0], pairs[:, 1]
+        return clearance_between(self.inst, self.base[i], self.orient[i], qi, self.base[j], self.orient[j], qj).min(axis=-1)
+
+    def unsafe(self, pairs: np.ndarray, q: np.ndarray, q_next: np.ndarray, c0: np.ndarray) -> np.ndarray:
+        """Which pairs are unsafe when moving from ``q`` to ``q_next`` (linear in joints).
+
+        Safe: clearance at the next sample ``c1 >= f = min(floor, c0)``, and the clearance
+        provably stays ``>= f / 2`` in between. Proof: over a piece of the step where the
+        pair's capsule points move at most ``B`` (the verifier's motion bound
+        ``M_i + M_j``), the clearance is at least ``(c_a + c_b - B) / 2`` with ``c_a, c_b``
+        the clearances at the piece's ends. The whole step is tried first, then
+        ``subdivisions`` equal pieces with exact clearances at their ends.
+        """
+        i, j = pairs[:, 0], pairs[:, 1]
+        motion_i = np.abs(q_next[i] - q[i]) @ self.rho
+        motion_j = np.abs(q_next[j] - q[j]) @ self.rho
+        bound = motion_i + motion_j
+        f = np.minimum(self.floor, c0)
+        c1 = self._between(pairs, q_next[i], q_next[j])
+        bad = c1 < f
+        coarse = ~bad & (0.5 * (c0 + c1 - bound) < 0.5 * f)
+        rows = np.flatnonzero(coarse)
+        if len(rows):
+            n_sub = self.subdivisions
+            pr = pairs[rows]
+            ii, jj = pr[:, 0], pr[:, 1]
+            t = np.arange(1, n_sub) / n_sub
+            qi = q[ii][None] + t[:, None, None] * (q_next[ii] - q[ii])[None]
+            qj = q[jj][None] + t[:, None, None] * (q_next[jj] - q[jj])[None]
+            m = len(rows)
+            c_mid = self._between(np.tile(pr, (n_sub - 1, 1)), qi.reshape(-1, 2), qj.reshape(-1, 2)).reshape(n_sub - 1, m)
+            c_all = np.vstack([c0[rows][None], c_mid, c1[rows][None]])
+            lower = 0.5 * (c_all[:-1] + c_all[1:] - bound[rows] / n_sub)
+            bad[rows] = np.any(lower < 0.5 * f[rows], axis=0) | np.any(c_mid < f[rows], axis=0)
+        return bad
+
+    def apply(self, q: np.ndarray, q_next: np.ndarray, c_now: np.ndarray, rank: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """Return the safe next configuration, which positioners were stopped, and iterations.
+
+        For an unsafe pair, the lower-priority mover is stopped if that makes the pair safe,
+        else the higher-priority one, else both; repeated until every pair is safe (holding
+        still is always safe, so this terminates).
+        """
+        q_next = q_next.copy()
+        held = np.zeros(len(q), dtype=bool)
+        pairs = self.pairs
+        iterations = 0
+        if len(pairs) == 0:
+            return q_next, held, 0
+        i_all, j_all = pairs[:, 0], pairs[:, 1]
+        while True:
+            motion = np.abs(q_next - q) @ self.rho
+            bound = motion[i_all] + motion[j_all]
+            idx = np.flatnonzero((bound > 0) & (c_now - bound < self.floor + 1e-9))
+            if len(idx) == 0:
+                break
+            bad = self.unsafe(pairs[idx], q, q_next, c_now[idx])
+            if not np.any(bad):
+                break
+            iterations += 1
+            bp = pairs[idx[bad]]
+            c0b = c_now[idx[bad]]
+            i, j = bp[:, 0], bp[:, 1]
+            i_first = rank[i] < rank[j]  # i has the higher priority
+            hi = np.where(i_first, i, j)
+            lo = np.where(i_first, j, i)
+            moving = np.any(q_next != q, axis=1)
+            q_a = q_next.copy()
+            q_a[lo] = q[lo]
+            q_b = q_next.copy()
+            q_b[hi] = q[hi]
+            ok_a = moving[lo] & ~self.unsafe(bp, q, q_a, c0b)
+            ok_b = moving[hi] & ~ok_a & ~self.unsafe(bp, q, q_b, c0b)
+            both = ~ok_a & ~ok_b
+            stop = np.unique(np.concatenate([lo[ok_a], hi[ok_b], lo[both], hi[both]]))
+            stop = stop[moving[stop]]
+            if len(stop) == 0:  # pragma: no cover - every unsafe pair has a mover
+                raise PlannerError("mpc: safety layer found an unsafe pair with both positioners still")
+            q_next[stop] = q[stop]
+            held[stop] = True
+        return q_next, held, iterations
+
+
+def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallback | None = None) -> PlanResult:
+    """Plan with decentralised MPC; see the module docstring and ``formulations/mpc.md``."""
+    inst = scenario.instrument
+    n = scenario.n_positioners
+    h = settings.dt_s
+    H = settings.horizon_steps
+    step_rad = inst.speeds_rad_s * h
+    lim = inst.limits_rad
+    goal_final = scenario.target.copy()
+    pairs = scenario.pairs
+    n_pairs = len(pairs)
+    degree = np.bincount(pairs.ravel(), minlength=n) if n_pairs else np.zeros(n, dtype=np.int64)
+    n_slots = int(max(1, min(degree.max(initial=0), settings.max_neighbour_constraints)))
+    rho = np.array([inst.alpha_point_extent_mm, inst.beta_point_extent_mm])
+    step_mm = float(rho @ step_rad)
+    datum = np.broadcast_to(np.array(inst.datum_rad), (n, 2))
+
+    weights = QpWeights(
+        tracking=settings.weight_tracking,
+        terminal=settings.weight_terminal,
+        input=settings.weight_input,
+        input_change=settings.weight_input_change,
+        slack_quadratic=settings.slack_weight_quadratic,
+    )
+    layout = QpLayout(H, n_slots, weights, settings.max_input_change)
+    options = OsqpOptions(eps_abs=settings.osqp_eps, eps_rel=settings.osqp_eps, max_iter=settings.osqp_max_iter)
+    safety = _SafetyLayer(scenario, settings.safety_margin_mm)
+    # A pair whose targets are closer than the margins could never both arrive: its QP
+    # margins are capped at half its clearance at the targets.
+    margin_cap = 0.5 * np.maximum(safety.clearance(goal_final, pairs), 0.0)
+
+    move = np.max(np.abs(goal_final - scenario.start) / inst.speeds_rad_s, axis=1)
+    bound_s = float(move[scenario.has_target].max()) if np.any(scenario.has_target) else 0.0
+    max_steps = int(np.ceil((settings.max_duration_factor * bound_s + settings.max_duration_extra_s) / h))
+    window = settings.deadlock_window_steps
+
+    q = scenario.start.copy()
+    goal = goal_final.copy()
+    goal_prev = goal
+    c_now = safety.clearance(q, pairs)
+    plan = straight_path(q, goal, step_rad, H)  # published plans (what neighbours see)
+    own_plan = plan.copy()  # linearisation points of each positioner's own QP
+    v_prev = np.zeros((n, 2))
+    history = [q.copy()]
+    counters = _Counters()
+    solve_times: list[np.ndarray] = []
+    iter_counts: list[np.ndarray] = []
+    qp_per_step: list[int] = []
+
+    # Deadlock state.
+    best_ttg = move.copy()
+    last_progress = np.zeros(n, dtype=np.int64)
+    level = np.zeros(n, dtype=np.int64)  # 0 normal, 1 top priority, 2 retreating
+    level_since = np.zeros(n, dtype=np.int64)
+    ever_deadlocked = np.zeros(n, dtype=bool)
+    first_dead = np.zeros(n, dtype=np.int64)
+    ever_yielded = np.zeros(n, dtype=bool)
+    yield_until = np.zeros(n, dtype=np.int64)
+    yield_to = np.zeros(n, dtype=np.int64)
+    progress_eps = 0.5 * h
+
+    executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
+    try:
+        for step in range(max_steps):
+            at_goal_final = np.all(q == goal_final, axis=1)
+            if np.all(at_goal_final):
+                break
+            ttg_final = np.max(np.abs(goal_final - q) / inst.speeds_rad_s, axis=1)
+
+            # --- conflict detection (depends only on the configuration and the published plans).
+            # Two positioners holding still at their goals need no QP: nothing changes.
+            resting = np.all(q == goal_prev, axis=1) & np.all(plan == q[:, None, :], axis=(1, 2))
+            near = c_now < settings.conflict_radius_mm + 2 * H * step_mm
+            cand = np.flatnonzero(near & ~(resting[pairs[:, 0]] & resting[pairs[:, 1]])) if n_pairs else np.zeros(0, dtype=np.int64)
+            sel = cand
+            if len(cand):
+                pred = pair_clearance(inst, scenario.base_xy, scenario.orient, np.swapaxes(plan, 0, 1), pairs[cand])
+                c_min = np.minimum(c_now[cand], pred.clearance.min(axis=(0, 2)))
+                sel = cand[c_min < settings.conflict_radius_mm]
+
+            # --- deadlock detection and resolution (deterministic).
+            # Stalled: the best time-to-go has not improved for a window.
+            improved = ttg_final < best_ttg - progress_eps
+            best_ttg = np.where(improved, ttg_final, best_ttg)
+            last_progress = np.where(improved | at_goal_final, step, last_progress)
+            stalled = (step - last_progress >= window) & ~at_goal_final
+            new_dead = stalled & (level == 0)
+            first_dead[new_dead & ~ever_deadlocked] = step
+            ever_deadlocked |= new_dead
+            level[new_dead] = 1
+            level_since[new_dead] = step
+            # Still stuck with top priority for two more windows: retreat sub-goals, i.e. fold
+            # the beta arm (level 2), turn alpha to the target while folded (level 3), then
+            # unfold with top priority again (level 1).
+            escalate = (level == 1) & stalled & (step - level_since >= 2 * window)
+            level[escalate] = 2
+            level_since[escalate] = step
+            counters.retreats += int(escalate.sum())
+            tol = 1e-9
+            folded = np.abs(q[:, 1] - datum[:, 1]) <= tol
+            turned = folded & (np.abs(q[:, 0] - goal_final[:, 0]) <= tol)
+            timeout = (level >= 2) & (step - level_since >= 4 * window)
+            to3 = (level == 2) & folded
+            level[to3] = 3
+            back = ((level == 3) & turned) | timeout
+            level[back] = 1
+            level_since[back] = step
+            last_progress[back] = step
+            best_ttg[back] = ttg_final[back]
+            level[(level > 0) & at_goal_final] = 0
+
+            # Priorities: deadlocked positioners first, in the order they were first found
+            # deadlocked (sticky, so two of them never swap roles); then the longest time-to-go.
+            boosted = level >= 1
+            order = np.lexsort((np.arange(n), -ttg_final, np.where(boosted, first_dead, 0), ~boosted))
+            rank = np.empty(n, dtype=np.int64)
+            rank[order] = np.arange(n)
+
+            # Retreat sub-goals: a lower-priority neighbour in conflict with a deadlocked
+            # positioner folds its beta arm (alpha stays) until the conflict is over.
+            # It keeps yielding for a window after the last conflict (hysteresis), as long as
+            # a deadlocked positioner remains.
+            if len(sel):
+                ci, cj = pairs[sel, 0], pairs[sel, 1]
+                i_first = rank[ci] < rank[cj]
+                hi = np.where(i_first, ci, cj)
+                lo = np.where(i_first, cj, ci)
+                pushing = level[hi] == 1
+                yield_until[lo[pushing]] = step + window
+                yield_to[lo[pushing]] = hi[pushing]
+            yielding = (yield_until > step) & ~boosted & (level[yield_to] == 1)
+            fold = yielding | (level == 2)
+            ever_yielded |= yielding
+            goal = goal_final.copy()
+            goal[fold, 0] = q[fold, 0]
+            goal[fold, 1] = datum[fold, 1]
+            goal[level == 3, 1] = datum[level == 3, 1]
+
+            goal_prev = goal
+            ref = straight_path(q, goal, step_rad, H)
+            q_next = ref[:, 0].copy()
+            new_plan = ref.copy()
+            n_qp = 0
+            if len(cand):
+                if len(sel):
+                    batch = _build_batch(
+                        scenario, settings, layout, pairs[sel], margin_cap[sel], q, own_plan, plan, ref, v_prev, rank, boosted,
+                        step_rad, lim,
+                    )
+                    result = executor.solve(batch)
+                    idx = batch.index
+                    n_qp = len(idx)
+                    counters.qp_solves += n_qp
+                    counters.qp_solved += int(np.sum(result.status == STATUS_SOLVED))
+                    counters.qp_inaccurate += int(np.sum(result.status == STATUS_INACCURATE))
+                    counters.qp_failures += int(np.sum(result.status == STATUS_FAILED))
+                    counters.workspaces += result.new_workspaces
+                    solve_times.append(result.solve_s)
+                    iter_counts.append(result.iterations)
+                    ok = result.status != STATUS_FAILED
+                    qplan = q[idx, None, :] + result.z * step_rad
+                    qplan = np.clip(qplan, lim[:, 0], lim[:, 1])
+                    # Executed first step: within the speed bound and the hard stops.
+                    first = q[idx] + np.clip(qplan[:, 0] - q[idx], -step_rad, step_rad)
+                    first = np.clip(first, lim[:, 0], lim[:, 1])
+                    # Failed solves brake: the positioner holds and publishes a hold plan.
+                    first = np.where(ok[:, None], first, q[idx])
+                    qplan = np.where(ok[:, None, None], qplan, q[idx, None, :])
+                    q_next[idx] = first
+                    new_plan[idx] = qplan
+            qp_per_step.append(n_qp)
+
+            # Snap onto the goal when within a small fraction of a step of it.
+            near = np.all(np.abs(goal - q_next) <= 0.05 * step_rad, axis=1) & np.all(np.abs(goal - q) <= step_rad, axis=1)
+            q_next[near] = goal[near]
+
+            # --- safety layer: exact distances of what will actually be executed.
+            q_next, held, iters = safety.apply(q, q_next, c_now, rank)
+            counters.safety_holds += int(held.sum())
+            counters.safety_iterations_max = max(counters.safety_iterations_max, iters)
+
+            # --- publish plans for the next round (shifted by one step).
+            tail = new_plan[:, -1] + np.clip(goal - new_plan[:, -1], -step_rad, step_rad)
+            shifted = np.concatenate([new_plan[:, 1:], tail[:, None]], axis=1)
+            # A stopped positioner publishes its intention one step late, but linearises its
+            # own next QP around where it actually is (holding).
+            plan = np.where(held[:, None, None], new_plan, shifted)
+            own_plan = np.where(held[:, None, None], q_next[:, None, :], shifted)
+            v_prev = (q_next - q) / step_rad
+            # Clearances change only for pairs with a moving positioner.
+            moved = np.any(q_next != q, axis=1)
+            if n_pairs:
+                changed = np.flatnonzero(moved[pairs[:, 0]] | moved[pairs[:, 1]])
+                c_now[changed] = safety.clearance(q_next, pairs[changed])
+            q = q_next
+            history.append(q.copy())
+            if progress is not None and step % 20 == 0:
+                progress(min(1.0, step / max_steps))
+    finally:
+        executor.close()
+    if progress is not None:
+        progress(1.0)
+
+    joints = np.stack(history)
+    times = np.arange(len(joints)) * h
+    final_xy = fiber_positions(inst, scenario.base_xy, scenario.orient, joints[-1])
+    reached = np.linalg.norm(final_xy - scenario.target_xy, axis=1) <= inst.tolerance_mm
+    reached |= ~scenario.has_target & np.all(joints[-1] == scenario.start, axis=1)
+    outcome = np.where(reached, "reached", "deadlocked")
+    all_times = np.concatenate(solve_times) if solve_times else np.zeros(0)
+    all_iters = np.concatenate(iter_counts) if iter_counts else np.zeros(0)
+    n_steps = len(joints) - 1
+    stats = {
+        "n_steps": n_steps,
+        "qp_solves": counters.qp_solves,
+        "qp_solved": counters.qp_solved,
+        "qp_inaccurate": counters.qp_inaccurate,
+        "qp_failures": counters.qp_failures,
+        "qp_workspaces": counters.workspaces,
+        "qp_fraction": counters.qp_solves / max(1, n * n_steps),
+        "qp_solve_ms_median": float(np.median(all_times) * 1e3) if len(all_times) else 0.0,
+        "qp_solve_ms_p95": float(np.percentile(all_times, 95) * 1e3) if len(all_times) else 0.0,
+        "qp_iterations_median": float(np.median(all_iters)) if len(all_iters) else 0.0,
+        "qp_max_per_step": int(max(qp_per_step, default=0)),
+        "safety_holds": counters.safety_holds,
+        "safety_iterations_max": counters.safety_iterations_max,
+        "deadlocks_detected": int(ever_deadlocked.sum()),
+        "deadlocks_resolved": int(np.sum(ever_deadlocked & reached)),
+        "deadlocks_remaining": int(np.sum(~reached & scenario.has_target)),
+        "retreats": counters.retreats,
+        "yielding_positioners": int(ever_yielded.sum()),
+        "n_slots": n_slots,
+    }
+    return PlanResult(
+        scenario=scenario,
+        trajectory=Trajectory(times, joints),
+        outcome=outcome,
+        planner="mpc",
+        settings=dataclasses.asdict(settings),
+        stats=stats,
+    )
+
+
+def _build_batch(
+    scenario: Scenario,
+    settings: MpcSettings,
+    layout: QpLayout,
+    cp: np.ndarray,
+    cap_mm: np.ndarray,
+    q: np.ndarray,
+    own_plan: np.ndarray,
+    plan: np.ndarray,
+    ref: np.ndarray,
+    v_prev: np.ndarray,
+    rank: np.ndarray,
+    boosted: np.ndarray,
+    step_rad: np.ndarray,
+    lim: np.ndarray,
+) -> QpBatch:
+    """Linearise the separation of every conflicting pair along the plans; stack per-positioner QP data."""
+    inst = scenario.instrument
+    H, S = layout.horizon_steps, layout.n_slots
+    i, j = cp[:, 0], cp[:, 1]
+    owner = np.concatenate([i, j])
+    nbr = np.concatenate([j, i])
+    n_d = len(owner)
+    # Virtual positioners: row r = (directed pair d, step k): the owner at its own plan
+    # (index r), the neighbour at its published plan (index R + r).
+    R = n_d * H
+    oo = np.repeat(owner, H)
+    nn = np.repeat(nbr, H)
+    kk = np.tile(np.arange(H), n_d)
+    base = np.concatenate([scenario.base_xy[oo], scenario.base_xy[nn]])
+    orient = np.concatenate([scenario.orient[oo], scenario.orient[nn]])
+    joints = np.concatenate([own_plan[oo, kk], plan[nn, kk]])
+    virt = np.stack([np.arange(R), R + np.arange(R)], axis=1)
+    pc = pair_clearance(inst, base, orient, joints, virt, gradient=True)
+    if pc.grad_i is None:  # pragma: no cover - asked for above
+        raise PlannerError("mpc: clearance gradients missing")
+    best = pc.clearance.argmin(axis=1)
+    rows = np.arange(R)
+    g2 = pc.clearance[rows, best].reshape(n_d, H)
+    grad = pc.grad_i[rows, best].reshape(n_d, H, 2)
+    higher = rank[owner] < rank[nbr]
+    cap2 = np.concatenate([cap_mm, cap_mm])
+    margin = np.minimum(np.where(higher, settings.priority_margin_mm, settings.margin_mm), cap2)
+    # A deadlocked positioner (boosted) plans straight through lower-priority neighbours,
+    # which see its plan and yield; the safety layer keeps the executed steps apart.
+    ratio = np.where(boosted[owner], 0.01 * settings.priority_slack_ratio, settings.priority_slack_ratio)
+    slack_w = settings.slack_weight_linear * np.where(higher, ratio, 1.0)
+    lin_point = own_plan[owner]  # (D, H, 2)
+    rhs = margin[:, None] - g2 + np.einsum("dkc,dkc->dk", grad, lin_point - q[owner][:, None, :])
+    coef = grad * step_rad
+
+    order = np.lexsort((nbr, g2.min(axis=1), owner))
+    owner, rhs, coef, slack_w = owner[order], rhs[order], coef[order], slack_w[order]
+    index, first, counts = np.unique(owner, return_index=True, return_counts=True)
+    local = np.repeat(np.arange(len(index)), counts)
+    slot = np.arange(len(owner)) - np.repeat(first, counts)
+    keep = slot < S  # the S most critical neighbours of each positioner
+    owner, rhs, coef, slack_w, local, slot = owner[keep], rhs[keep], coef[keep], slack_w[keep], local[keep], slot[keep]
+    m = len(index)
+    coef_b = np.zeros((m, S, H, 2))
+    rhs_b = np.zeros((m, S, H))
+    active_b = np.zeros((m, S), dtype=bool)
+    slack_b = np.full((m, S), settings.slack_weight_linear)
+    coef_b[local, slot] = coef
+    rhs_b[local, slot] = rhs
+    active_b[local, slot] = True
+    slack_b[local, slot] = slack_w
+    qi = q[index]
+    return QpBatch(
+        index=index,
+        z_ref=(ref[index] - qi[:, None, :]) / step_rad,
+        z_lo=(lim[:, 0] - qi) / step_rad,
+        z_hi=(lim[:, 1] - qi) / step_rad,
+        v_prev=v_prev[index],
+        coef=coef_b,
+        rhs=rhs_b,
+        active=active_b,
+        slack_linear=slack_b,
+    )

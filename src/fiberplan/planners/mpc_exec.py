@@ -1,0 +1,228 @@
+"""Executors of the ``mpc`` planner's per-positioner QPs: sequential, or over worker processes.
+
+Every positioner owns one persistent QP workspace, created the first time it needs a QP and
+then updated and warm-started at every later step. The parallel executor gives each process
+a fixed block of positioners (``index % n_blocks``) and their workspaces for the whole run;
+the planner process itself owns block 0. Because each workspace sees exactly the same
+sequence of updates in both executors, and OSQP is deterministic, both executors produce
+bit-identical trajectories.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from fiberplan.errors import PlannerError
+from fiberplan.planners.mpc_qp import (
+    STATUS_FAILED,
+    OsqpOptions,
+    PositionerQP,
+    QpData,
+    QpLayout,
+    timed_solve,
+)
+
+
+@dataclass
+class QpBatch:
+    """QP data of ``m`` positioners for one control step (arrays stacked over positioners).
+
+    ``index`` holds the positioner rows; the other arrays are the fields of
+    :class:`~fiberplan.planners.mpc_qp.QpData` with a leading ``m`` axis.
+    """
+
+    index: np.ndarray
+    z_ref: np.ndarray
+    z_lo: np.ndarray
+    z_hi: np.ndarray
+    v_prev: np.ndarray
+    coef: np.ndarray
+    rhs: np.ndarray
+    active: np.ndarray
+    slack_linear: np.ndarray
+
+    def take(self, rows: np.ndarray) -> QpBatch:
+        """The sub-batch of the given rows."""
+        return QpBatch(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
+
+    def data(self, r: int) -> QpData:
+        """The :class:`QpData` of row ``r``."""
+        return QpData(
+            z_ref=self.z_ref[r],
+            z_lo=self.z_lo[r],
+            z_hi=self.z_hi[r],
+            v_prev=self.v_prev[r],
+            coef=self.coef[r],
+            rhs=self.rhs[r],
+            active=self.active[r],
+            slack_linear=self.slack_linear[r],
+        )
+
+
+@dataclass
+class QpBatchResult:
+    """Solutions of a batch: status (1 solved, 2 solved inaccurate, 0 failed), plans, timings."""
+
+    status: np.ndarray
+    z: np.ndarray
+    slack_max: np.ndarray
+    iterations: np.ndarray
+    solve_s: np.ndarray
+    new_workspaces: int
+
+
+class _Block:
+    """The QP workspaces of one block of positioners (lives in one process)."""
+
+    def __init__(self, layout: QpLayout, options: OsqpOptions, qp_solver: str) -> None:
+        self.layout = layout
+        self.options = options
+        self.qp_solver = qp_solver
+        self.workspaces: dict[int, PositionerQP] = {}
+
+    def solve(self, batch: QpBatch) -> QpBatchResult:
+        m = len(batch.index)
+        H = self.layout.horizon_steps
+        status = np.zeros(m, dtype=np.int64)
+        z = np.full((m, H, 2), np.nan)
+        slack_max = np.zeros(m)
+        iterations = np.zeros(m, dtype=np.int64)
+        solve_s = np.zeros(m)
+        created = 0
+        for r in range(m):
+            workspace = None
+            if self.qp_solver == "osqp":
+                key = int(batch.index[r])
+                workspace = self.workspaces.get(key)
+                if workspace is None:
+                    workspace = PositionerQP(self.layout, self.options)
+                    self.workspaces[key] = workspace
+                    created += 1
+            st, x, it, dt = timed_solve(self.layout, workspace, batch.data(r), self.qp_solver)
+            status[r], iterations[r], solve_s[r] = st, it, dt
+            if x is not None and st != STATUS_FAILED:
+                zz, _, ss = self.layout.split(x)
+                z[r] = zz
+                slack_max[r] = float(ss.max(initial=0.0))
+        return QpBatchResult(status, z, slack_max, iterations, solve_s, created)
+
+
+def _merge(parts: list[tuple[np.ndarray, QpBatchResult]], m: int, H: int) -> QpBatchResult:
+    out = QpBatchResult(
+        status=np.zeros(m, dtype=np.int64),
+        z=np.full((m, H, 2), np.nan),
+        slack_max=np.zeros(m),
+        iterations=np.zeros(m, dtype=np.int64),
+        solve_s=np.zeros(m),
+        new_workspaces=0,
+    )
+    for rows, res in parts:
+        out.status[rows] = res.status
+        out.z[rows] = res.z
+        out.slack_max[rows] = res.slack_max
+        out.iterations[rows] = res.iterations
+        out.solve_s[rows] = res.solve_s
+        out.new_workspaces += res.new_workspaces
+    return out
+
+
+class SequentialExecutor:
+    """Solves every QP in the planner's process."""
+
+    def __init__(self, layout: QpLayout, options: OsqpOptions, qp_solver: str) -> None:
+        self._block = _Block(layout, options, qp_solver)
+
+    def solve(self, batch: QpBatch) -> QpBatchResult:
+        """Solve a batch, positioner by positioner."""
+        return self._block.solve(batch)
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+def _worker(conn: Connection, layout: QpLayout, options: OsqpOptions, qp_solver: str) -> None:
+    block = _Block(layout, options, qp_solver)
+    while True:
+        batch = conn.recv()
+        if batch is None:
+            break
+        conn.send(block.solve(batch))
+    conn.close()
+
+
+class ParallelExecutor:
+    """Persistent worker processes, each owning the workspaces of one block of positioners.
+
+    Block ``b`` holds the positioners with ``index % n_blocks == b``; block 0 is solved in
+    the planner's process, blocks 1.. in ``n_blocks - 1`` forked worker processes that live
+    for the whole planning run. Per step, each worker receives its positioners' QP data
+    through a pipe and sends back their plans.
+    """
+
+    def __init__(self, layout: QpLayout, options: OsqpOptions, qp_solver: str, workers: int) -> None:
+        if workers < 1:
+            raise PlannerError(f"mpc: workers must be >= 1, found {workers}")
+        self.n_blocks = int(workers)
+        self._layout = layout
+        self._local = _Block(layout, options, qp_solver)
+        self._conns: list[Connection] = []
+        self._procs: list[Any] = []
+        try:
+            ctx = mp.get_context("fork")
+        except ValueError as e:
+            raise PlannerError("mpc: the parallel executor needs the 'fork' start method (Linux, macOS)") from e
+        for _ in range(self.n_blocks - 1):
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(target=_worker, args=(child, layout, options, qp_solver), daemon=True)
+            proc.start()
+            child.close()
+            self._conns.append(parent)
+            self._procs.append(proc)
+
+    def solve(self, batch: QpBatch) -> QpBatchResult:
+        """Send each block its QPs, solve block 0 here, gather the results in batch order."""
+        m = len(batch.index)
+        owner = batch.index % self.n_blocks
+        sent: list[tuple[np.ndarray, int]] = []
+        for b in range(1, self.n_blocks):
+            rows = np.flatnonzero(owner == b)
+            if len(rows):
+                self._conns[b - 1].send(batch.take(rows))
+                sent.append((rows, b))
+        rows0 = np.flatnonzero(owner == 0)
+        parts = [(rows0, self._local.solve(batch.take(rows0)))]
+        for rows, b in sent:
+            parts.append((rows, self._conns[b - 1].recv()))
+        return _merge(parts, m, self._layout.horizon_steps)
+
+    def close(self) -> None:
+        """Stop the worker processes."""
+        for conn in self._conns:
+            try:
+                conn.send(None)
+                conn.close()
+            except (BrokenPipeError, OSError):
+                pass
+        deadline = time.monotonic() + 5.0
+        for proc in self._procs:
+            proc.join(timeout=max(0.0, deadline - time.monotonic()))
+            if proc.is_alive():
+                proc.terminate()
+        self._conns, self._procs = [], []
+
+
+def make_executor(
+    kind: str, layout: QpLayout, options: OsqpOptions, qp_solver: str, workers: int
+) -> SequentialExecutor | ParallelExecutor:
+    """Build the executor named by the ``executor`` setting."""
+    if kind == "sequential":
+        return SequentialExecutor(layout, options, qp_solver)
+    if kind == "parallel":
+        return ParallelExecutor(layout, options, qp_solver, workers)
+    raise PlannerError(f"mpc: executor must be 'sequential' or 'parallel', found {kind!r}")

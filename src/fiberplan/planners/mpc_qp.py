@@ -1,0 +1,318 @@
+"""The per-positioner quadratic program of the ``mpc`` planner (``formulations/mpc.md``).
+
+One positioner, horizon ``H`` steps of length ``h``, in scaled units: joint motion is
+counted in *steps at full speed*, ``z(k) = (q(k) - q(0)) / (omega h)`` (dimensionless), and
+the normalised input is ``v(k) = u(k) / omega`` in ``[-1, 1]``. Decision vector::
+
+    x = [ z(1) .. z(H)  (2H) | v(0) .. v(H-1)  (2H) | s_1(1) .. s_S(H)  (S H) ]
+
+with one slack ``s_m(k) >= 0`` (mm) per neighbour slot ``m`` and horizon step ``k``
+(``S H`` slacks). The problem
+
+.. math::
+
+    \\min_x \\; \\sum_{k=1}^{H-1} w_t \\|z(k) - \\hat z(k)\\|^2 + w_f \\|z(H) - \\hat z(H)\\|^2
+        + w_u \\sum_{k=0}^{H-1} \\|v(k)\\|^2 + w_{\\Delta} \\sum_{k=0}^{H-1} \\|v(k) - v(k-1)\\|^2
+        + \\sum_{m,k} (\\lambda_m s_m(k) + \\mu s_m(k)^2)
+
+    \\text{s.t.}\\; z(k) = z(k-1) + v(k-1),\\; z(0) = 0;\\quad -1 \\le v \\le 1;\\quad
+    z_{lo} \\le z(k) \\le z_{hi};\\quad |v(k) - v(k-1)| \\le \\delta \\;(\\text{optional});
+
+    c_m(k) \\cdot z(k) + s_m(k) \\ge r_m(k) \\;(\\text{active slots});\\quad s \\ge 0
+
+is assembled once per positioner with a fixed sparsity pattern (:class:`QpLayout`); each
+control step only the vectors ``q, l, u`` and the collision coefficients in ``A`` change
+(:meth:`QpLayout.assemble`). :class:`PositionerQP` holds one persistent OSQP workspace and
+warm-starts it; :func:`solve_with_qpsolvers` routes the same matrices through qpsolvers.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from fiberplan.errors import PlannerError
+
+STATUS_SOLVED = 1
+STATUS_INACCURATE = 2
+STATUS_FAILED = 0
+
+_INF = np.inf
+
+
+@dataclass(frozen=True)
+class QpWeights:
+    """Cost weights of the per-positioner QP (scaled units, see the module docstring).
+
+    Attributes:
+        tracking: ``w_t``, per squared step of deviation from the reference.
+        terminal: ``w_f``, on the last horizon step.
+        input: ``w_u``, on the squared normalised input.
+        input_change: ``w_Delta``, on the squared change of normalised input.
+        slack_quadratic: ``mu``, quadratic slack weight (per mm^2); the linear weights
+            ``lambda_m`` are given per slot at every step.
+    """
+
+    tracking: float
+    terminal: float
+    input: float
+    input_change: float
+    slack_quadratic: float
+
+
+@dataclass
+class QpData:
+    """Per-step data of one positioner's QP.
+
+    Attributes:
+        z_ref: ``(H, 2)`` reference (steps from the current joints).
+        z_lo, z_hi: ``(2,)`` joint hard stops in steps from the current joints.
+        v_prev: ``(2,)`` normalised input applied at the previous step.
+        coef: ``(S, H, 2)`` collision row coefficients ``c_m(k)`` (mm per step).
+        rhs: ``(S, H)`` collision row lower bounds ``r_m(k)`` (mm).
+        active: ``(S,)`` which slots hold a neighbour.
+        slack_linear: ``(S,)`` linear slack weights ``lambda_m``.
+    """
+
+    z_ref: np.ndarray
+    z_lo: np.ndarray
+    z_hi: np.ndarray
+    v_prev: np.ndarray
+    coef: np.ndarray
+    rhs: np.ndarray
+    active: np.ndarray
+    slack_linear: np.ndarray
+
+
+class QpLayout:
+    """Fixed sparsity pattern and index maps of the QP for ``H`` steps and ``S`` neighbour slots.
+
+    Rows of ``A``, in order: dynamics (2H, equalities), joint stops on ``z`` (2H), input
+    bounds on ``v`` (2H), optional input-change bounds (2H), slack signs (S H), collision rows
+    (S H, row ``(m, k)`` at ``collision_row0 + m H + k - 1``).
+    """
+
+    def __init__(self, horizon_steps: int, n_slots: int, weights: QpWeights, max_input_change: float | None) -> None:
+        if horizon_steps < 1:
+            raise PlannerError(f"mpc: horizon_steps must be >= 1, found {horizon_steps}")
+        H, S = int(horizon_steps), int(max(n_slots, 1))
+        self.horizon_steps, self.n_slots = H, S
+        self.weights = weights
+        self.max_input_change = max_input_change
+        self.iz = np.arange(2 * H).reshape(H, 2)
+        self.iv = 2 * H + np.arange(2 * H).reshape(H, 2)
+        self.isl = 4 * H + np.arange(S * H).reshape(S, H)
+        self.n_var = 4 * H + S * H
+
+        # --- cost: 0.5 x' P x + q' x, P constant.
+        w = weights
+        diag = np.zeros(self.n_var)
+        diag[self.iz[:-1].ravel()] = 2 * w.tracking
+        diag[self.iz[-1]] = 2 * w.terminal
+        n_change = np.full(H, 2.0)  # v(k) appears in the change terms k and k+1 ...
+        n_change[-1] = 1.0  # ... except the last
+        diag[self.iv] = 2 * (w.input + w.input_change * n_change)[:, None]
+        diag[self.isl] = 2 * w.slack_quadratic
+        rows, cols, vals = list(range(self.n_var)), list(range(self.n_var)), diag.tolist()
+        for k in range(1, H):
+            for d in range(2):
+                rows.append(int(self.iv[k - 1, d]))
+                cols.append(int(self.iv[k, d]))
+                vals.append(-2 * w.input_change)
+        self.P = sp.csc_matrix((vals, (rows, cols)), shape=(self.n_var, self.n_var))
+
+        # --- constraints.
+        entries: list[tuple[int, int, float]] = []
+        row = 0
+        for k in range(H):  # z(k+1) - z(k) - v(k) = 0
+            for d in range(2):
+                entries.append((row, int(self.iz[k, d]), 1.0))
+                if k > 0:
+                    entries.append((row, int(self.iz[k - 1, d]), -1.0))
+                entries.append((row, int(self.iv[k, d]), -1.0))
+                row += 1
+        self.row_dyn = np.arange(0, 2 * H)
+        self.row_z = np.arange(row, row + 2 * H).reshape(H, 2)
+        for k in range(H):
+            for d in range(2):
+                entries.append((row, int(self.iz[k, d]), 1.0))
+                row += 1
+        self.row_v = np.arange(row, row + 2 * H).reshape(H, 2)
+        for k in range(H):
+            for d in range(2):
+                entries.append((row, int(self.iv[k, d]), 1.0))
+                row += 1
+        self.row_dv: np.ndarray | None = None
+        if max_input_change is not None:
+            self.row_dv = np.arange(row, row + 2 * H).reshape(H, 2)
+            for k in range(H):
+                for d in range(2):
+                    entries.append((row, int(self.iv[k, d]), 1.0))
+                    if k > 0:
+                        entries.append((row, int(self.iv[k - 1, d]), -1.0))
+                    row += 1
+        self.row_s = np.arange(row, row + S * H)
+        for m in range(S):
+            for k in range(H):
+                entries.append((row, int(self.isl[m, k]), 1.0))
+                row += 1
+        self.collision_row0 = row
+        for m in range(S):
+            for k in range(H):
+                entries.append((row, int(self.iz[k, 0]), 1.0))
+                entries.append((row, int(self.iz[k, 1]), 1.0))
+                entries.append((row, int(self.isl[m, k]), 1.0))
+                row += 1
+        self.n_con = row
+        r_idx = np.array([e[0] for e in entries])
+        c_idx = np.array([e[1] for e in entries])
+        v_all = np.array([e[2] for e in entries])
+        A = sp.csc_matrix((v_all, (r_idx, c_idx)), shape=(self.n_con, self.n_var))
+        A.sort_indices()
+        self.A = A
+        # Where each collision coefficient lives in A.data: (S, H, 2).
+        self.ax_collision = np.empty((S, H, 2), dtype=np.int64)
+        for m in range(S):
+            for k in range(H):
+                r = self.collision_row0 + m * H + k
+                for d in range(2):
+                    col = int(self.iz[k, d])
+                    start, stop = A.indptr[col], A.indptr[col + 1]
+                    pos = start + int(np.flatnonzero(A.indices[start:stop] == r)[0])
+                    self.ax_collision[m, k, d] = pos
+        self.A_data0 = A.data.copy()
+        self.A_data0[self.ax_collision.ravel()] = 0.0
+        self.A.data[:] = self.A_data0
+        self.row_collision = self.collision_row0 + np.arange(S * H).reshape(S, H)
+
+        lo = np.full(self.n_con, -_INF)
+        hi = np.full(self.n_con, _INF)
+        lo[self.row_dyn] = hi[self.row_dyn] = 0.0
+        lo[self.row_v] = -1.0
+        hi[self.row_v] = 1.0
+        if self.row_dv is not None and max_input_change is not None:
+            lo[self.row_dv] = -max_input_change
+            hi[self.row_dv] = max_input_change
+        lo[self.row_s] = 0.0
+        self.l0, self.u0 = lo, hi
+
+    def assemble(self, data: QpData) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Vectors ``q, l, u`` and the data array of ``A`` for one step (a few numpy operations)."""
+        w = self.weights
+        q = np.zeros(self.n_var)
+        q[self.iz[:-1]] = -2 * w.tracking * data.z_ref[:-1]
+        q[self.iz[-1]] = -2 * w.terminal * data.z_ref[-1]
+        q[self.iv[0]] = -2 * w.input_change * data.v_prev
+        q[self.isl] = data.slack_linear[:, None]
+        lo = self.l0.copy()
+        hi = self.u0.copy()
+        lo[self.row_z] = data.z_lo
+        hi[self.row_z] = data.z_hi
+        if self.row_dv is not None:
+            lo[self.row_dv[0]] += data.v_prev
+            hi[self.row_dv[0]] += data.v_prev
+        lo[self.row_collision] = np.where(data.active[:, None], data.rhs, -_INF)
+        ax = self.A_data0.copy()
+        ax[self.ax_collision] = np.where(data.active[:, None, None], data.coef, 0.0)
+        return q, lo, hi, ax
+
+    def dense(self, data: QpData) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The full problem ``(P, q, A, l, u)`` as dense arrays (``P`` symmetric)."""
+        q, lo, hi, ax = self.assemble(data)
+        A = self.A.copy()
+        A.data = ax
+        P = self.P.toarray()
+        P = P + np.triu(P, 1).T
+        return P, q, A.toarray(), lo, hi
+
+    def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Split a decision vector into ``z (H, 2)``, ``v (H, 2)`` and slacks ``(S, H)``."""
+        return x[self.iz], x[self.iv], x[self.isl]
+
+
+@dataclass(frozen=True)
+class OsqpOptions:
+    """OSQP settings used by every workspace."""
+
+    eps_abs: float = 1e-3
+    eps_rel: float = 1e-3
+    max_iter: int = 400
+    check_termination: int = 10
+
+
+class PositionerQP:
+    """One positioner's persistent OSQP workspace: set up once, then ``update`` + warm start."""
+
+    def __init__(self, layout: QpLayout, options: OsqpOptions) -> None:
+        import osqp
+
+        self.layout = layout
+        self._solver = osqp.OSQP()
+        P_upper = sp.triu(layout.P, format="csc")
+        self._solver.setup(
+            P_upper,
+            np.zeros(layout.n_var),
+            layout.A.copy(),
+            layout.l0,
+            np.minimum(layout.u0, 1e30),
+            verbose=False,
+            polishing=False,
+            warm_starting=True,
+            eps_abs=options.eps_abs,
+            eps_rel=options.eps_rel,
+            max_iter=options.max_iter,
+            check_termination=options.check_termination,
+            eps_prim_inf=1e-6,
+            eps_dual_inf=1e-6,
+        )
+
+    def solve(self, data: QpData) -> tuple[int, np.ndarray | None, int]:
+        """Update the workspace and solve; returns ``(status, x or None, iterations)``."""
+        q, lo, hi, ax = self.layout.assemble(data)
+        self._solver.update(q=q, l=lo, u=hi, Ax=ax)
+        res = self._solver.solve(raise_error=False)
+        status_val = int(res.info.status_val)
+        if status_val == STATUS_SOLVED:
+            return STATUS_SOLVED, np.asarray(res.x), int(res.info.iter)
+        if status_val == STATUS_INACCURATE and res.x is not None and np.all(np.isfinite(res.x)):
+            return STATUS_INACCURATE, np.asarray(res.x), int(res.info.iter)
+        return STATUS_FAILED, None, int(res.info.iter)
+
+
+def solve_with_qpsolvers(layout: QpLayout, data: QpData, solver: str) -> tuple[int, np.ndarray | None, int]:
+    """Solve the same QP with a qpsolvers backend (no persistent workspace).
+
+    Rows with equal bounds become equalities, the others one-sided inequalities ``G x <= h``.
+    """
+    import qpsolvers
+
+    P, q, A, lo, hi = layout.dense(data)
+    eq = lo == hi
+    up = ~eq & np.isfinite(hi)
+    dn = ~eq & np.isfinite(lo)
+    G = np.vstack([A[up], -A[dn]])
+    h = np.concatenate([hi[up], -lo[dn]])
+    try:
+        x = qpsolvers.solve_qp(
+            sp.csc_matrix(P), q, sp.csc_matrix(G), h, sp.csc_matrix(A[eq]), lo[eq], solver=solver
+        )
+    except Exception:  # a backend error is a failed solve: the positioner brakes
+        return STATUS_FAILED, None, 0
+    if x is None or not np.all(np.isfinite(x)):
+        return STATUS_FAILED, None, 0
+    return STATUS_SOLVED, np.asarray(x), 0
+
+
+def timed_solve(
+    layout: QpLayout, workspace: PositionerQP | None, data: QpData, qp_solver: str
+) -> tuple[int, np.ndarray | None, int, float]:
+    """Solve with the workspace (OSQP) or a qpsolvers backend; also returns the wall time (s)."""
+    t0 = time.perf_counter()
+    if workspace is not None:
+        status, x, iters = workspace.solve(data)
+    else:
+        status, x, iters = solve_with_qpsolvers(layout, data, qp_solver)
+    return status, x, iters, time.perf_counter() - t0

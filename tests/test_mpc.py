@@ -1,0 +1,270 @@
+"""Tests of the ``mpc`` planner: safety on every instrument, the QP against a cvxpy oracle,
+qpsolvers backends, forced OSQP failures, and sequential == parallel executors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fiberplan.errors import PlannerError
+from fiberplan.generate import make_scenario
+from fiberplan.instrument import load_instrument
+from fiberplan.metrics import summarize
+from fiberplan.planners import make_settings, plan
+from fiberplan.planners.mpc import MpcSettings, straight_path
+from fiberplan.planners.mpc_qp import STATUS_FAILED, STATUS_SOLVED, OsqpOptions, PositionerQP, QpData, QpLayout, QpWeights
+from fiberplan.verify import verify
+
+WEIGHTS = QpWeights(tracking=1.0, terminal=5.0, input=0.01, input_change=0.02, slack_quadratic=10.0)
+
+
+def _check_safe(result):
+    report = verify(result.scenario, result.trajectory)
+    assert report.n_collisions == 0, report.collisions[:3]
+    assert not report.limit_violations, report.limit_violations[:3]
+    assert not report.start_mismatch_ids
+    return report
+
+
+@pytest.mark.parametrize(
+    ("instrument", "n", "kind", "seed"),
+    [
+        ("desi", 19, "random", 1),
+        ("desi", 19, "clustered", 2),
+        ("moons", 7, "unfold", 1),
+        ("moons", 7, "random", 3),
+        ("sdss", 7, "random", 1),
+    ],
+)
+def test_mpc_small_is_collision_free(instrument, n, kind, seed):
+    scenario = make_scenario(instrument, n, kind, seed)
+    result = plan(scenario, "mpc", {"max_duration_factor": 2.0})
+    _check_safe(result)
+    assert result.planner == "mpc"
+    assert result.stats["n_steps"] == len(result.trajectory.times) - 1
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_mpc_reaches_targets_on_small_desi(seed):
+    scenario = make_scenario("desi", 19, "random", seed)
+    result = plan(scenario, "mpc")
+    report = _check_safe(result)
+    summary = summarize(result, report)
+    assert summary["success_rate"] == 1.0
+    assert summary["makespan_over_bound"] <= 1.5
+    assert np.all(result.outcome == "reached")
+
+
+def test_mpc_resolves_conflicts_with_qps_on_desi_37():
+    scenario = make_scenario("desi", 37, "random", 5)
+    result = plan(scenario, "mpc")
+    _check_safe(result)
+    assert result.stats["qp_solves"] > 0
+    assert 0 < result.stats["qp_fraction"] < 1
+    assert result.stats["qp_failures"] <= 0.01 * result.stats["qp_solves"]
+
+
+# ----------------------------------------------------------------------------- settings
+def test_defaults_scale_with_the_instrument():
+    desi = MpcSettings.for_instrument(load_instrument("desi"))
+    moons = MpcSettings.for_instrument(load_instrument("moons"))
+    assert desi.dt_s == pytest.approx(0.01)
+    assert moons.dt_s == pytest.approx(0.05)
+    assert moons.conflict_radius_mm > desi.conflict_radius_mm
+    assert desi.safety_margin_mm > 0
+
+
+@pytest.mark.parametrize(
+    ("override", "match"),
+    [
+        ({"horizon_steps": 0}, "horizon_steps"),
+        ({"dt_s": -1.0}, "dt_s"),
+        ({"executor": "threads"}, "executor"),
+        ({"qp_solver": "nope"}, "qp_solver"),
+        ({"margin_mm": float("nan")}, "margin_mm"),
+        ({"max_input_change": 0.0}, "max_input_change"),
+    ],
+)
+def test_bad_settings_are_rejected(override, match):
+    scenario = make_scenario("desi", 7, "random", 1)
+    with pytest.raises(PlannerError, match=match):
+        make_settings("mpc", scenario, override)
+
+
+def test_straight_path_saturates_and_stops_at_goal():
+    q = np.array([[0.0, 1.0]])
+    goal = np.array([[0.25, 0.5]])
+    path = straight_path(q, goal, np.array([0.1, 0.1]), 4)
+    np.testing.assert_allclose(path[0, :, 0], [0.1, 0.2, 0.25, 0.25])
+    np.testing.assert_allclose(path[0, :, 1], [0.9, 0.8, 0.7, 0.6])
+
+
+# ----------------------------------------------------------------------------- the QP
+def _random_data(rng: np.random.Generator, layout: QpLayout) -> QpData:
+    H, S = layout.horizon_steps, layout.n_slots
+    steps = np.arange(1, H + 1)[:, None]
+    direction = rng.uniform(-1, 1, 2)
+    active = rng.random(S) < 0.7
+    return QpData(
+        z_ref=np.clip(steps * direction, -rng.uniform(2, 8), rng.uniform(2, 8)),
+        z_lo=-rng.uniform(1.5, 20, 2),
+        z_hi=rng.uniform(1.5, 20, 2),
+        v_prev=rng.uniform(-1, 1, 2),
+        coef=rng.normal(0, 0.2, (S, H, 2)),
+        rhs=rng.normal(0.0, 0.3, (S, H)) + 0.05 * steps.T,
+        active=active,
+        slack_linear=rng.choice([2.0, 200.0], S),
+    )
+
+
+def _cvxpy_solution(layout: QpLayout, data: QpData, max_input_change: float | None):
+    """The QP written from its mathematical statement (formulations/mpc.md), not from the matrices."""
+    cp = pytest.importorskip("cvxpy")
+    H, S = layout.horizon_steps, layout.n_slots
+    w = layout.weights
+    z = cp.Variable((H, 2))
+    v = cp.Variable((H, 2))
+    s = cp.Variable((S, H))
+    cost = w.tracking * cp.sum_squares(z[:-1] - data.z_ref[:-1]) + w.terminal * cp.sum_squares(z[-1] - data.z_ref[-1])
+    cost += w.input * cp.sum_squares(v)
+    cost += w.input_change * (cp.sum_squares(v[0] - data.v_prev) + cp.sum_squares(v[1:] - v[:-1]))
+    cost += cp.sum(cp.multiply(np.repeat(data.slack_linear[:, None], H, axis=1), s)) + w.slack_quadratic * cp.sum_squares(s)
+    cons = [z[0] == v[0], z[1:] == z[:-1] + v[1:], cp.abs(v) <= 1, s >= 0]
+    cons += [z >= np.broadcast_to(data.z_lo, (H, 2)), z <= np.broadcast_to(data.z_hi, (H, 2))]
+    if max_input_change is not None:
+        cons += [cp.abs(v[0] - data.v_prev) <= max_input_change, cp.abs(v[1:] - v[:-1]) <= max_input_change]
+    for m in range(S):
+        if data.active[m]:
+            cons.append(cp.sum(cp.multiply(data.coef[m], z), axis=1) + s[m] >= data.rhs[m])
+    problem = cp.Problem(cp.Minimize(cost), cons)
+    problem.solve(solver=cp.CLARABEL)
+    assert problem.status == "optimal"
+    return z.value, problem.value
+
+
+@pytest.mark.parametrize("max_input_change", [None, 0.3])
+def test_osqp_matrices_match_cvxpy_oracle(max_input_change):
+    rng = np.random.default_rng(7)
+    layout = QpLayout(6, 3, WEIGHTS, max_input_change)
+    for _ in range(12):
+        data = _random_data(rng, layout)
+        if max_input_change is not None:
+            data.v_prev = np.clip(data.v_prev, -1 + max_input_change, 1 - max_input_change)
+        ws = PositionerQP(layout, OsqpOptions(eps_abs=1e-7, eps_rel=1e-7, max_iter=20000))
+        status, x, _ = ws.solve(data)
+        assert status == STATUS_SOLVED
+        z_ref, value_ref = _cvxpy_solution(layout, data, max_input_change)
+        P, q, _, _, _ = layout.dense(data)
+        # cvxpy's cost drops the constant term of the tracking squares.
+        const = WEIGHTS.tracking * np.sum(data.z_ref[:-1] ** 2) + WEIGHTS.terminal * np.sum(data.z_ref[-1] ** 2)
+        const += WEIGHTS.input_change * np.sum(data.v_prev**2)
+        value = 0.5 * x @ P @ x + q @ x + const
+        assert value == pytest.approx(value_ref, rel=1e-4, abs=1e-4)
+        np.testing.assert_allclose(layout.split(x)[0], z_ref, atol=2e-3)
+
+
+def test_osqp_matches_cvxpy_on_planner_conflicts(monkeypatch):
+    """Conflict situations sampled from a real run give the same optimum as the oracle."""
+    from fiberplan.planners import mpc_exec
+
+    captured = []
+    original = mpc_exec._Block.solve
+
+    def spy(self, batch):
+        if len(captured) < 6 and len(batch.index):
+            captured.append((self.layout, batch.data(0)))
+        return original(self, batch)
+
+    monkeypatch.setattr(mpc_exec._Block, "solve", spy)
+    plan(make_scenario("desi", 37, "random", 5), "mpc", {"max_duration_factor": 0.5})
+    assert captured
+    for layout, data in captured:
+        ws = PositionerQP(layout, OsqpOptions(eps_abs=1e-7, eps_rel=1e-7, max_iter=20000))
+        status, x, _ = ws.solve(data)
+        assert status == STATUS_SOLVED
+        z_ref, _ = _cvxpy_solution(layout, data, None)
+        np.testing.assert_allclose(layout.split(x)[0], z_ref, atol=5e-3)
+
+
+def test_fixed_sparsity_pattern_and_infinite_unused_rows():
+    layout = QpLayout(5, 4, WEIGHTS, None)
+    data = _random_data(np.random.default_rng(1), layout)
+    data.active[:] = [True, False, True, False]
+    _, lo, hi, ax = layout.assemble(data)
+    assert ax.shape == layout.A.data.shape
+    unused = layout.row_collision[~data.active].ravel()
+    assert np.all(np.isneginf(lo[unused])) and np.all(np.isposinf(hi[unused]))
+    assert np.all(ax[layout.ax_collision[~data.active]] == 0.0)
+
+
+def test_qpsolvers_backend_clarabel():
+    pytest.importorskip("qpsolvers")
+    pytest.importorskip("clarabel")
+    scenario = make_scenario("desi", 19, "random", 1)
+    result = plan(scenario, "mpc", {"qp_solver": "clarabel"})
+    _check_safe(result)
+    assert result.stats["qp_solves"] > 0
+    assert result.stats["qp_failures"] == 0
+    # Same QP through both paths: the same first step.
+    from fiberplan.planners.mpc_qp import solve_with_qpsolvers
+
+    layout = QpLayout(6, 3, WEIGHTS, None)
+    data = _random_data(np.random.default_rng(3), layout)
+    st_c, x_c, _ = solve_with_qpsolvers(layout, data, "clarabel")
+    st_o, x_o, _ = PositionerQP(layout, OsqpOptions(1e-7, 1e-7, 20000)).solve(data)
+    assert st_c == st_o == STATUS_SOLVED
+    np.testing.assert_allclose(layout.split(x_c)[0], layout.split(x_o)[0], atol=2e-3)
+
+
+# ----------------------------------------------------------------------------- failures
+def test_forced_osqp_failures_keep_the_plan_safe(monkeypatch):
+    from fiberplan.planners import mpc_qp
+
+    def failing_solve(self, data):
+        return STATUS_FAILED, None, 0
+
+    monkeypatch.setattr(mpc_qp.PositionerQP, "solve", failing_solve)
+    scenario = make_scenario("desi", 19, "random", 1)
+    result = plan(scenario, "mpc", {"max_duration_factor": 2.0})
+    _check_safe(result)
+    assert result.stats["qp_solves"] > 0
+    assert result.stats["qp_failures"] == result.stats["qp_solves"]
+
+
+def test_one_iteration_osqp_keeps_the_plan_safe():
+    scenario = make_scenario("desi", 19, "random", 2)
+    result = plan(scenario, "mpc", {"osqp_max_iter": 1, "max_duration_factor": 2.0})
+    _check_safe(result)
+    assert result.stats["qp_failures"] > 0
+    assert result.stats["qp_failures"] + result.stats["qp_solved"] + result.stats["qp_inaccurate"] == result.stats["qp_solves"]
+
+
+# ----------------------------------------------------------------------------- executors
+def test_parallel_executor_gives_identical_trajectories():
+    scenario = make_scenario("desi", 37, "random", 5)
+    seq = plan(scenario, "mpc", {"executor": "sequential"})
+    par = plan(scenario, "mpc", {"executor": "parallel", "workers": 2})
+    assert seq.stats["qp_solves"] > 0
+    assert np.array_equal(seq.trajectory.joints, par.trajectory.joints)
+    assert np.array_equal(seq.trajectory.times, par.trajectory.times)
+    assert np.array_equal(seq.outcome, par.outcome)
+
+
+def test_same_seed_same_trajectory():
+    a = plan(make_scenario("desi", 19, "random", 4), "mpc")
+    b = plan(make_scenario("desi", 19, "random", 4), "mpc")
+    assert np.array_equal(a.trajectory.joints, b.trajectory.joints)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("instrument", "kind"), [("moons", "unfold"), ("moons", "random"), ("sdss", "random")])
+def test_mpc_is_collision_free_at_61(instrument, kind):
+    result = plan(make_scenario(instrument, 61, kind, 1), "mpc")
+    _check_safe(result)
+
+
+@pytest.mark.slow
+def test_mpc_desi_500_success():
+    result = plan(make_scenario("desi", 500, "random", 3), "mpc")
+    report = _check_safe(result)
+    assert summarize(result, report)["success_rate"] >= 0.99
