@@ -306,6 +306,67 @@ def study_plot(results: Path, kind: str, x: str, by: str, rate: str, out: Path) 
     click.echo(f"wrote {out}")
 
 
+@cli.command()
+@click.option("--instrument", default="desi", show_default=True, help="Preset name (desi, moons, sdss) or instrument .toml file.")
+@click.option("--positioners", "-n", default=7, show_default=True, type=int, help="Positioners in the hexagonal group.")
+@click.option(
+    "--scenario-kind", default="hard", show_default=True, help="hard (clustered starts and targets), random, unfold, fold or clustered."
+)
+@click.option("--seeds", default=5, show_default=True, type=int, help="Run seeds 0..K-1.")
+@click.option("--seed-list", default=None, help="Comma-separated seeds (instead of --seeds).")
+@click.option("--planners", "planner_list", default="central,mpc,dnf", show_default=True, help="Comma-separated planner names.")
+@click.option("--set", "settings", multiple=True, metavar="PLANNER.KEY=VALUE", help="Setting override of one planner (repeatable).")
+@click.option("--energy-gap", is_flag=True, help="Also solve central in energy mode at each planner's makespan.")
+@click.option("--out", type=click.Path(path_type=Path), default=Path("compare.parquet"), show_default=True, help="Parquet file of the rows.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object (rows and aggregates) instead of the table.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def compare(
+    instrument: str, positioners: int, scenario_kind: str, seeds: int, seed_list: str | None, planner_list: str,
+    settings: tuple[str, ...], energy_gap: bool, out: Path, as_json: bool, quiet: bool,
+) -> None:
+    """Run several planners on the same seeded scenarios; verify each; one row per planner x scenario."""
+    from tqdm import tqdm
+
+    from fiberplan.compare import format_table, run_compare, write_parquet
+
+    if seed_list is not None:
+        try:
+            seed_values = [int(s) for s in seed_list.split(",") if s.strip()]
+        except ValueError as e:
+            raise click.BadParameter(f"expected comma-separated integers, found {seed_list!r}", param_hint="--seed-list") from e
+    else:
+        if seeds < 1:
+            raise click.BadParameter(f"must be >= 1, found {seeds}", param_hint="--seeds")
+        seed_values = list(range(seeds))
+    if not seed_values:
+        raise click.BadParameter("no seeds given", param_hint="--seed-list")
+    names = [p.strip() for p in planner_list.split(",") if p.strip()]
+    per_planner: dict[str, dict[str, Any]] = {}
+    for key, value in _parse_settings(settings).items():
+        if "." not in key:
+            raise click.BadParameter(f"expected PLANNER.KEY=VALUE, found {key!r}", param_hint="--set")
+        planner_name, setting = key.split(".", 1)
+        per_planner.setdefault(planner_name, {})[setting] = value
+    bar = tqdm(total=len(seed_values) * len(names), desc="compare", disable=True if quiet else None, file=sys.stderr, leave=False)
+
+    def progress(label: str) -> None:
+        bar.set_postfix_str(label)
+        bar.update(1)
+
+    try:
+        result = run_compare(
+            instrument, positioners, names, seed_values, kind=scenario_kind, settings=per_planner, energy_gap=energy_gap, progress=progress
+        )
+    finally:
+        bar.close()
+    write_parquet(result.rows, out)
+    if as_json:
+        click.echo(json.dumps(result.to_dict() | {"out": str(out)}))
+    else:
+        click.echo(format_table(result))
+        click.echo(f"wrote {out}")
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point: run the CLI, turning fiberplan errors into one line and exit status 2."""
     try:

@@ -24,6 +24,7 @@ _PLANNERS: dict[str, tuple[str, str, str]] = {
     "straight": ("fiberplan.planners.straight", "plan_straight", "StraightSettings"),
     "mpc": ("fiberplan.planners.mpc", "plan_mpc", "MpcSettings"),
     "dnf": ("fiberplan.planners.dnf", "plan_dnf", "DnfSettings"),
+    "central": ("fiberplan.planners.central", "plan_central", "CentralSettings"),
 }
 
 

@@ -1,0 +1,166 @@
+"""How far are the decentralised planners from the central optimum? (issue 5, reference 004 section 7.5)
+
+For each instrument and group size, runs ``central``, ``mpc`` and ``dnf`` on the same seeded
+``hard`` scenarios (:func:`fiberplan.compare.hard_scenario`), verifies every result, and writes
+``benchmarks/results/central_<instrument>_<n>.json`` with machine info, versions, date,
+parameters, per-planner aggregates (success, makespan gap to central: median and 90th
+percentile, energy gap at equal makespan, plan wall times) and every row. The file is
+rewritten after each seed, so an interrupted run keeps what it measured (``seeds_done``).
+
+Usage::
+
+    python benchmarks/bench_central.py --instrument desi --positioners 7 19 --seeds 30
+    python benchmarks/bench_central.py --table          # markdown gap table from the result files
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import math
+import os
+import platform
+import sys
+import time
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+from fiberplan._atomic import atomic_path
+from fiberplan.compare import HARD_KIND, aggregate, run_compare
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def _versions() -> dict[str, str]:
+    out = {"python": sys.version.split()[0]}
+    for name in ("fiberplan", "casadi", "numpy", "scipy", "osqp"):
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = "missing"
+    return out
+
+
+def _machine() -> dict[str, Any]:
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "load_average_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "note": "shared 2-core machine: two other developers ran benchmarks concurrently; wall times are pessimistic",
+    }
+
+
+def _clean(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_clean(v) for v in value]
+    if hasattr(value, "item"):
+        return _clean(value.item())
+    return value
+
+
+def run_one(
+    instrument: str, n: int, seeds: list[int], planners: list[str], energy_gap: bool, budget_s: float, out: Path,
+    central: dict[str, Any],
+) -> dict[str, Any]:
+    rows: list[dict[str, Any]] = []
+    started = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+    t0 = time.perf_counter()
+    done: list[int] = []
+    payload: dict[str, Any] = {}
+    for seed in seeds:
+        if time.perf_counter() - t0 > budget_s:
+            break
+        result = run_compare(instrument, n, planners, [seed], kind=HARD_KIND, energy_gap=energy_gap, settings={"central": central})
+        rows.extend(result.rows)
+        done.append(seed)
+        payload = {
+            "benchmark": "bench_central",
+            "date_utc": started,
+            "machine": _machine(),
+            "versions": _versions(),
+            "parameters": {
+                "instrument": instrument,
+                "n_positioners": n,
+                "scenario_kind": HARD_KIND,
+                "seeds_requested": seeds,
+                "seeds_done": done,
+                "planners": planners,
+                "energy_gap": energy_gap,
+                "time_budget_s": budget_s,
+                "planner_settings": "defaults, except central overrides below; central also warm-starts from the other planners' results",
+                "central_overrides": central,
+            },
+            "elapsed_s": time.perf_counter() - t0,
+            "aggregates": aggregate(rows),
+            "rows": rows,
+        }
+        with atomic_path(out) as tmp:
+            tmp.write_text(json.dumps(_clean(payload), indent=1))
+        gaps = {p: payload["aggregates"][p]["gap_to_central"]["median"] for p in planners}
+        print(f"{instrument} {n} seed {seed}: {time.perf_counter() - t0:.0f} s, median gaps {gaps}", flush=True)
+    return payload
+
+
+def _fmt(value: Any, spec: str) -> str:
+    return "n/a" if value is None or (isinstance(value, float) and not math.isfinite(value)) else format(value, spec)
+
+
+def table(results_dir: Path) -> str:
+    """Markdown gap table from every ``central_*.json`` file."""
+    lines = [
+        "| instrument | N | seeds | planner | clean | collisions | makespan / bound (median) | gap to central: median | p90 | n | "
+        "energy gap at equal makespan: median | p90 | plan wall s: median | max |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for path in sorted(results_dir.glob("central_*.json")):
+        data = json.loads(path.read_text())
+        par = data["parameters"]
+        for name, agg in data["aggregates"].items():
+            gap, egap, wall = agg["gap_to_central"], agg["energy_gap_to_central"], agg["plan_wall_s"]
+            lines.append(
+                f"| {par['instrument']} | {par['n_positioners']} | {len(par['seeds_done'])} | {name} | {_fmt(agg['clean_fraction'], '.0%')} | "
+                f"{agg['collisions_total']} | {_fmt(agg['makespan_over_bound']['median'], '.3f')} | {_fmt(gap['median'], '+.1%')} | "
+                f"{_fmt(gap['p90'], '+.1%')} | {gap['n']} | {_fmt(egap['median'], '+.1%')} | {_fmt(egap['p90'], '+.1%')} | "
+                f"{_fmt(wall['median'], '.2f')} | {_fmt(wall['max'], '.1f')} |"
+            )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--instrument", nargs="+", default=["desi"])
+    parser.add_argument("--positioners", nargs="+", type=int, default=[7, 19])
+    parser.add_argument("--seeds", type=int, default=30, help="seeds 0..K-1")
+    parser.add_argument("--planners", default="central,mpc,dnf")
+    parser.add_argument("--no-energy-gap", action="store_true", help="skip the energy-mode central solves")
+    parser.add_argument("--budget-s", type=float, default=3600.0, help="stop starting new seeds after this many seconds per group")
+    parser.add_argument("--results", type=Path, default=RESULTS)
+    parser.add_argument("--central-set", nargs="*", default=[], metavar="KEY=VALUE", help="central setting overrides (JSON values)")
+    parser.add_argument("--table", action="store_true", help="print the markdown gap table of the result files and exit")
+    args = parser.parse_args()
+    if args.table:
+        print(table(args.results))
+        return
+    planners = [p for p in args.planners.split(",") if p]
+    central: dict[str, Any] = {}
+    for item in args.central_set:
+        key, raw = item.split("=", 1)
+        try:
+            central[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            central[key] = raw
+    for instrument in args.instrument:
+        for n in args.positioners:
+            out = args.results / f"central_{instrument}_{n}.json"
+            run_one(instrument, n, list(range(args.seeds)), planners, not args.no_energy_gap, args.budget_s, out, central)
+
+
+if __name__ == "__main__":
+    main()

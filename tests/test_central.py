@@ -1,0 +1,166 @@
+"""The ``central`` CasADi/IPOPT reference on tiny groups with a known answer."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from fiberplan.errors import PlannerError
+from fiberplan.instrument import load_instrument
+from fiberplan.kinematics import inverse_kinematics, move_times
+from fiberplan.metrics import energy, lower_bound_s, summarize
+from fiberplan.planners import central as central_module
+from fiberplan.planners import make_settings, plan
+from fiberplan.planners.central import central_reference, solve_central
+from fiberplan.scenario import TARGET_JOINTS, TARGET_NONE, Scenario
+from fiberplan.trajectory import Trajectory
+from fiberplan.verify import verify
+
+DESI = load_instrument("desi")
+
+
+def _desi_pair(start_xy: list[tuple[float, float]], target_xy: list[tuple[float, float]], base: np.ndarray) -> Scenario:
+    n = len(base)
+    start = np.stack([inverse_kinematics(DESI, base[i : i + 1], np.zeros(1), np.array([start_xy[i]]), np.ones(1))[0] for i in range(n)])
+    target = np.stack([inverse_kinematics(DESI, base[i : i + 1], np.zeros(1), np.array([target_xy[i]]), np.ones(1))[0] for i in range(n)])
+    return Scenario(
+        instrument=DESI,
+        ids=np.arange(n),
+        base_xy=base,
+        orient_deg=np.zeros(n),
+        start_deg=np.degrees(start),
+        target_kind=np.full(n, TARGET_JOINTS),
+        target_values=np.degrees(target),
+        target_parity=np.zeros(n, dtype=np.int64),
+        name="crossing",
+    )
+
+
+@pytest.fixture(scope="module")
+def crossing() -> Scenario:
+    """Two DESI positioners 10.4 mm apart whose fibers swap sides: their straight moves collide."""
+    base = np.array([[0.0, 0.0], [0.0, 10.4]])
+    return _desi_pair([(2.6, 3.8), (-2.6, 6.6)], [(-2.6, 3.8), (2.6, 6.6)], base)
+
+
+def _sequential_baseline(scenario: Scenario) -> Trajectory:
+    """Positioner 0 moves straight at full speed, then positioner 1: a safe plan with a known makespan."""
+    dt = 0.002
+    times_each = move_times(scenario.instrument, scenario.start, scenario.target)
+    total = float(times_each.sum())
+    t = np.append(np.arange(0.0, total, dt), total)
+    begin = np.array([0.0, times_each[0]])
+    frac = np.clip((t[:, None] - begin[None]) / times_each[None], 0.0, 1.0)
+    joints = scenario.start[None] + frac[..., None] * (scenario.target - scenario.start)[None]
+    return Trajectory(t, joints)
+
+
+@pytest.fixture(scope="module")
+def crossing_central(crossing: Scenario):
+    return central_reference(crossing)
+
+
+def test_straight_collides_and_sequential_is_safe(crossing: Scenario) -> None:
+    assert verify(crossing, plan(crossing, "straight").trajectory).n_collisions == 1
+    assert verify(crossing, _sequential_baseline(crossing)).ok
+
+
+def test_central_is_verified_and_between_bound_and_sequential(crossing: Scenario, crossing_central) -> None:
+    result = crossing_central
+    report = verify(crossing, result.trajectory)
+    assert report.ok and report.n_collisions == 0
+    assert result.stats["verified"] is True
+    assert result.stats["status"] in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+    assert result.stats["iterations"] > 0 and result.stats["solve_s"] > 0
+    assert np.all(result.outcome == "reached")
+    summary = summarize(result, report)
+    assert summary["success_rate"] == 1.0
+    sequential = float(move_times(DESI, crossing.start, crossing.target).sum())
+    bound = lower_bound_s(crossing)
+    # The trajectory ends exactly at the target; the optimum must beat "one waits for the other".
+    np.testing.assert_allclose(result.trajectory.joints[-1], crossing.target, atol=1e-12)
+    assert bound <= result.trajectory.duration_s + 1e-9
+    assert result.trajectory.duration_s < sequential
+    assert summary["makespan_s"] <= sequential
+
+
+def test_central_never_beats_the_bound_and_samples_the_instrument_grid(crossing_central) -> None:
+    traj = crossing_central.trajectory
+    assert np.max(np.diff(traj.times)) <= make_settings("central", crossing_central.scenario).output_dt_s + 1e-12
+
+
+def test_energy_mode_at_fixed_makespan(crossing: Scenario, crossing_central) -> None:
+    makespan = 1.5 * crossing_central.trajectory.duration_s
+    result = central_reference(crossing, {"mode": "energy", "makespan_s": makespan})
+    assert result.stats["verified"] is True
+    assert verify(crossing, result.trajectory).ok
+    assert result.trajectory.duration_s == pytest.approx(makespan, rel=1e-6)
+    # More time, less energy than the minimum-time solution.
+    assert energy(result.trajectory) < energy(crossing_central.trajectory)
+
+
+def test_three_positioners_with_a_bystander() -> None:
+    """A third positioner with no target may step aside but must end where it started."""
+    base = np.array([[0.0, 0.0], [0.0, 10.4], [9.0067, 5.2]])
+    sc = _desi_pair([(2.6, 3.8), (-2.6, 6.6), (4.5, 5.2)], [(-2.6, 3.8), (2.6, 6.6), (4.5, 5.2)], base)
+    sc = dataclasses.replace(sc, target_kind=np.array([TARGET_JOINTS, TARGET_JOINTS, TARGET_NONE]))
+    result = central_reference(sc, {"steps": 30})
+    assert result.stats["verified"] is True
+    assert verify(sc, result.trajectory).ok
+    np.testing.assert_allclose(result.trajectory.joints[-1, 2], sc.start[2], atol=1e-12)
+
+
+def test_nothing_to_move_holds_still(crossing: Scenario) -> None:
+    still = dataclasses.replace(crossing, target_values=crossing.start_deg)
+    result = plan(still, "central")
+    assert np.all(result.outcome == "reached")
+    assert verify(still, result.trajectory).ok
+
+
+def test_a_colliding_candidate_is_reported_failed(crossing: Scenario, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Item 2 of the issue: a central solution the verifier rejects is never returned as optimal."""
+    real = central_module.solve_central
+
+    def colliding(*args, **kwargs):
+        solution, problem = real(*args, **kwargs)
+        straight, _ = central_module._straight_guess(problem, 1.0)
+        for cand in solution.candidates:
+            cand.joints = straight
+            cand.makespan_s = problem.lower_bound_s
+        return solution, problem
+
+    monkeypatch.setattr(central_module, "solve_central", colliding)
+    result = central_reference(crossing, {"warm_start": ["sequential"]})
+    assert result.stats["verified"] is False
+    assert result.stats["rejected"] and result.stats["rejected"][0]["collisions"] >= 1
+    assert np.all(result.outcome == "failed")
+    assert verify(crossing, result.trajectory).ok  # holding still is safe
+
+
+@pytest.mark.parametrize(
+    ("overrides", "match"),
+    [
+        ({"mode": "fastest"}, "mode must be 'time' or 'energy'"),
+        ({"steps": 1}, "steps must be an integer >= 2"),
+        ({"warm_start": []}, "warm_start needs at least one start"),
+        ({"warm_start": ["central"]}, "cannot name 'central'"),
+        ({"margin_mm": -1.0}, "margin_mm must be a finite number >= 0"),
+    ],
+)
+def test_bad_settings(crossing: Scenario, overrides: dict, match: str) -> None:
+    with pytest.raises(PlannerError, match=match):
+        make_settings("central", crossing, overrides)
+
+
+def test_energy_mode_below_the_bound_is_refused(crossing: Scenario) -> None:
+    settings = make_settings("central", crossing, {"mode": "energy", "makespan_s": 0.5 * lower_bound_s(crossing)})
+    with pytest.raises(PlannerError, match="lower bound"):
+        solve_central(crossing, settings)
+
+
+def test_unknown_warm_start_planner(crossing: Scenario) -> None:
+    settings = make_settings("central", crossing, {"warm_start": ["nope"]})
+    with pytest.raises(PlannerError, match="unknown planner 'nope'"):
+        solve_central(crossing, settings)
