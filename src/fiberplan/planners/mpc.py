@@ -161,6 +161,15 @@ class MpcSettings:
             raise PlannerError(f"mpc: executor must be 'sequential' or 'parallel', found {self.executor!r}")
         if self.qp_solver not in QP_SOLVERS:
             raise PlannerError(f"mpc: qp_solver must be one of {', '.join(QP_SOLVERS)}, found {self.qp_solver!r}")
+        if self.qp_solver != "osqp":
+            try:
+                import qpsolvers
+            except ImportError as e:
+                raise PlannerError(f"mpc: qp_solver {self.qp_solver!r} needs the qpsolvers package (pip install qpsolvers)") from e
+            if self.qp_solver not in qpsolvers.available_solvers:
+                raise PlannerError(
+                    f"mpc: qp_solver {self.qp_solver!r} is not installed; qpsolvers has {', '.join(qpsolvers.available_solvers)}"
+                )
 
 
 def _step_motion_mm(instrument: Instrument, dt_s: float) -> float:
