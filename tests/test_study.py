@@ -141,3 +141,26 @@ def test_rates_group_and_pool_positioners():
     assert table.loc["a", "deadlock_rate"] == pytest.approx(0.1)
     assert table.loc["a", "runs_all_reached"] == pytest.approx(0.5)
     assert table.loc["a", "deadlock_lo"] < 0.1 < table.loc["a", "deadlock_hi"]
+
+
+def test_dead_worker_is_replaced_and_its_run_recorded(tmp_path, monkeypatch):
+    import fiberplan.study as study_module
+
+    spec = load_study(write_spec(tmp_path, seeds=2))
+    doomed = spec.tasks[1].key
+    original = study_module.run_task
+
+    def dies_on_one_task(task, per_positioner=False):
+        if task.key == doomed:
+            os._exit(1)  # the worker process dies, as under the OOM killer
+        return original(task, per_positioner)
+
+    # pickled by reference as fiberplan.study.run_task, which the forked workers see patched
+    dies_on_one_task.__module__, dies_on_one_task.__qualname__ = "fiberplan.study", "run_task"
+    monkeypatch.setattr(study_module, "run_task", dies_on_one_task)
+    assert run_study(spec, workers=2, progress=False) == len(spec.tasks)
+    table = pd.read_parquet(spec.out).set_index("task")
+    assert table.loc[doomed, "status"] == "error"
+    assert "worker process died on this run" in table.loc[doomed, "error"]
+    others = table.drop(index=doomed)
+    assert (others.loc[others["setting.dt_s"] > 0, "status"] == "ok").all()

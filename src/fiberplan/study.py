@@ -10,8 +10,9 @@ distributed cluster, and the sweep is resumable and loss-free:
 - the table ``<out>`` is rebuilt from the parts as runs finish (at most every few seconds)
   and at the end;
 - re-running the same command skips every run whose part exists;
-- a run that raises is recorded as a row with ``status = "error"`` and the message; a worker
-  process that dies is replaced and its run retried once, then recorded as an error.
+- a run that raises is recorded as a row with ``status = "error"`` and the message; when a
+  worker process dies, the runs that were in flight are retried one by one in fresh
+  processes, and the one that dies again alone is recorded as an error.
 
 Study file layout::
 
@@ -335,32 +336,33 @@ def _progress_bar(total: int, initial: int) -> Any:
 
 
 def _local_results(tasks: Sequence[Task], per_positioner: bool, workers: int) -> Iterator[dict[str, Any]]:
-    """Run tasks on a process pool; a dead worker is replaced and its run retried once."""
-    pending = list(tasks)
-    attempts: dict[str, int] = {}
-    while pending:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures: dict[Future[dict[str, Any]], Task] = {pool.submit(run_task, t, per_positioner): t for t in pending}
-            pending = []
-            broken = False
-            while futures:
-                done, _ = wait(futures, return_when=FIRST_COMPLETED)
-                for fut in done:
-                    task = futures.pop(fut)
-                    try:
-                        yield fut.result()
-                    except BrokenProcessPool:
-                        broken = True
-                        attempts[task.key] = attempts.get(task.key, 0) + 1
-                        if attempts[task.key] >= 2:
-                            yield _crash_row(task, "worker process died twice on this run")
-                        else:
-                            pending.append(task)
-                if broken:
-                    for fut, task in futures.items():
-                        fut.cancel()
-                        pending.append(task)
-                    futures = {}
+    """Run tasks on a process pool; a dead worker does not stop the sweep.
+
+    When a worker process dies, every run then in flight fails with the broken pool, and
+    which one killed it is unknown: those runs are retried one by one, each in a pool of its
+    own, so that a death is blamed on exactly the run that caused it (recorded as an error).
+    """
+    suspects: list[Task] = []
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        futures: dict[Future[dict[str, Any]], Task] = {pool.submit(run_task, t, per_positioner): t for t in tasks}
+        while futures:
+            done, _ = wait(futures, return_when=FIRST_COMPLETED)
+            for fut in done:
+                task = futures.pop(fut)
+                try:
+                    yield fut.result()
+                except BrokenProcessPool:
+                    suspects.append(task)
+            if suspects and futures:
+                # The pool is broken: every run still queued is a suspect too.
+                suspects.extend(futures.values())
+                futures = {}
+    for task in suspects:
+        with ProcessPoolExecutor(max_workers=1) as alone:
+            try:
+                yield alone.submit(run_task, task, per_positioner).result()
+            except BrokenProcessPool:
+                yield _crash_row(task, "worker process died on this run (retried alone)")
 
 
 def _crash_row(task: Task, message: str) -> dict[str, Any]:
