@@ -36,7 +36,7 @@ from fiberplan._atomic import atomic_path
 from fiberplan.errors import PlannerError, ScenarioError
 from fiberplan.instrument import Instrument, load_instrument
 from fiberplan.kinematics import move_times
-from fiberplan.scenario import TARGET_JOINTS, Scenario
+from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult
 
 HARD_KIND = "hard"
@@ -79,7 +79,7 @@ def hard_scenario(
         ScenarioError: bad size or no collision-free configuration found.
         InstrumentError: unknown instrument preset.
     """
-    from fiberplan.generate import clustered_sampler, random_configuration
+    from fiberplan.generate import clustered_sampler, joint_scenario, random_configuration
     from fiberplan.instrument import preset_names
     from fiberplan.layout import hex_patch, neighbour_pairs
     from fiberplan.planners.straight import StraightSettings, plan_straight
@@ -102,19 +102,8 @@ def hard_scenario(
         start = random_configuration(inst, base, orient, pairs, rng, sampler=start_sampler)
         target_sampler = clustered_sampler(inst, base, rng, n_clusters=n_clusters, sigma_mm=sigma, background=background)
         target = random_configuration(inst, base, orient, pairs, rng, sampler=target_sampler)
-        scenario = Scenario(
-            instrument=inst,
-            ids=np.arange(n),
-            base_xy=base,
-            orient_deg=np.degrees(orient),
-            start_deg=np.degrees(start),
-            target_kind=np.full(n, TARGET_JOINTS),
-            target_values=np.degrees(target),
-            target_parity=np.zeros(n, dtype=np.int64),
-            name=f"{inst.name}-{n}-{HARD_KIND}-seed{int(seed)}",
-            kind=HARD_KIND,
-            seed=int(seed),
-            instrument_preset=preset,
+        scenario = joint_scenario(
+            inst, base, orient, start, target, kind=HARD_KIND, seed=int(seed), instrument_preset=preset,
             meta={"hard_draw": draw, "hard_draws": int(draws)},
         )
         times = move_times(inst, scenario.start, scenario.target)

@@ -20,6 +20,7 @@ Colliding positioners are redrawn until the configuration is collision-free.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -218,18 +219,36 @@ def make_scenario(
         target = random_configuration(inst, base, orient, pairs, rng)
 
     seed_value = None if isinstance(seed, np.random.Generator) else int(seed)
+    return joint_scenario(inst, base, orient, start, target, kind=kind, seed=seed_value, instrument_preset=preset)
+
+
+def joint_scenario(
+    instrument: Instrument,
+    base_xy: np.ndarray,
+    orient: np.ndarray,
+    start: np.ndarray,
+    target: np.ndarray,
+    *,
+    kind: str,
+    seed: int | None,
+    instrument_preset: str | None = None,
+    meta: dict[str, Any] | None = None,
+) -> Scenario:
+    """A scenario with ids ``0..N-1`` and joint-angle targets, from radian arrays."""
+    n = len(base_xy)
     return Scenario(
-        instrument=inst,
+        instrument=instrument,
         ids=np.arange(n),
-        base_xy=base,
+        base_xy=base_xy,
         orient_deg=np.degrees(orient),
         start_deg=np.degrees(start),
         target_kind=np.full(n, TARGET_JOINTS),
         target_values=np.degrees(target),
         target_parity=np.zeros(n, dtype=np.int64),
-        name=f"{inst.name}-{n}-{kind}-seed{seed_value}",
+        name=f"{instrument.name}-{n}-{kind}-seed{seed}",
         kind=kind,
-        seed=seed_value,
-        instrument_preset=preset,
+        seed=seed,
+        instrument_preset=instrument_preset,
+        meta=dict(meta or {}),
     )
 

@@ -79,6 +79,20 @@ class Task:
     settings: tuple[tuple[str, Any], ...] = ()
     scenario_options: tuple[tuple[str, Any], ...] = ()
 
+    def parameters(self) -> dict[str, Any]:
+        """The run's parameters as row columns (``setting.*`` and ``scenario.*`` flattened)."""
+        return {
+            "task": self.key,
+            "instrument": self.instrument,
+            "n_positioners": self.n_positioners,
+            "scenario_kind": self.scenario_kind,
+            "planner": self.planner,
+            "seed": self.seed,
+            "settings_json": json.dumps(dict(self.settings), sort_keys=True),
+            **{f"setting.{k}": v for k, v in self.settings},
+            **{f"scenario.{k}": v for k, v in self.scenario_options},
+        }
+
     @property
     def key(self) -> str:
         """Stable identifier (hash of the canonical parameters) used to resume."""
@@ -224,19 +238,7 @@ def load_study(path: str | Path) -> StudySpec:
 
 def run_task(task: Task, per_positioner: bool = False) -> dict[str, Any]:
     """Run one task: generate, plan, verify, summarise. Never raises: errors become a row."""
-    row: dict[str, Any] = {
-        "task": task.key,
-        "instrument": task.instrument,
-        "n_positioners": task.n_positioners,
-        "scenario_kind": task.scenario_kind,
-        "planner": task.planner,
-        "seed": task.seed,
-        "settings_json": json.dumps(dict(task.settings), sort_keys=True),
-    }
-    for name, value in task.settings:
-        row[f"setting.{name}"] = value
-    for name, value in task.scenario_options:
-        row[f"scenario.{name}"] = value
+    row = task.parameters()
     t0 = time.perf_counter()
     try:
         from fiberplan.generate import make_scenario
@@ -367,15 +369,7 @@ def _local_results(tasks: Sequence[Task], per_positioner: bool, workers: int) ->
 
 def _crash_row(task: Task, message: str) -> dict[str, Any]:
     return {
-        "task": task.key,
-        "instrument": task.instrument,
-        "n_positioners": task.n_positioners,
-        "scenario_kind": task.scenario_kind,
-        "planner": task.planner,
-        "seed": task.seed,
-        "settings_json": json.dumps(dict(task.settings), sort_keys=True),
-        **{f"setting.{k}": v for k, v in task.settings},
-        **{f"scenario.{k}": v for k, v in task.scenario_options},
+        **task.parameters(),
         "status": "error",
         "error": message,
     }
