@@ -19,38 +19,16 @@ import argparse
 import datetime as _dt
 import json
 import math
-import os
-import platform
-import sys
 import time
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
+
+from _machine import machine_info
 
 from fiberplan._atomic import atomic_path
 from fiberplan.compare import HARD_KIND, aggregate, run_compare
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def _versions() -> dict[str, str]:
-    out = {"python": sys.version.split()[0]}
-    for name in ("fiberplan", "casadi", "numpy", "scipy", "osqp"):
-        try:
-            out[name] = version(name)
-        except PackageNotFoundError:
-            out[name] = "missing"
-    return out
-
-
-def _machine() -> dict[str, Any]:
-    return {
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "load_average_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-        "note": "shared 2-core machine: two other developers ran benchmarks concurrently; wall times are pessimistic",
-    }
 
 
 def _clean(value: Any) -> Any:
@@ -83,8 +61,7 @@ def run_one(
         payload = {
             "benchmark": "bench_central",
             "date_utc": started,
-            "machine": _machine(),
-            "versions": _versions(),
+            "machine": machine_info(("casadi", "osqp")),
             "parameters": {
                 "instrument": instrument,
                 "n_positioners": n,

@@ -23,15 +23,13 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
-import platform
 import sys
 import time
-from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _machine import machine_info
 
 from fiberplan.generate import make_scenario
 from fiberplan.metrics import summarize
@@ -49,17 +47,7 @@ MOONS_VARIANTS = {
 }
 
 
-def machine_info() -> dict[str, Any]:
-    """Platform, CPU count and package versions."""
-    return {
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "python": sys.version.split()[0],
-        "cpu_count": os.cpu_count(),
-        "numpy": version("numpy"),
-        "scipy": version("scipy"),
-        "fiberplan": version("fiberplan"),
-    }
+
 
 
 def run_one(instrument: str, n: int, kind: str, seed: int, overrides: dict[str, Any]) -> dict[str, Any]:

@@ -27,15 +27,13 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
-import platform
 import sys
 import time
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _machine import machine_info
 
 from fiberplan.generate import make_scenario
 from fiberplan.metrics import summarize
@@ -59,23 +57,7 @@ REFERENCE = {
 }
 
 
-def _version(name: str) -> str:
-    try:
-        return version(name)
-    except PackageNotFoundError:
-        return "not installed"
 
-
-def machine_info() -> dict[str, Any]:
-    """Platform, CPU count, load and package versions."""
-    return {
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "python": sys.version.split()[0],
-        "cpu_count": os.cpu_count(),
-        "load_average_at_start": list(os.getloadavg()),
-        "packages": {p: _version(p) for p in ("fiberplan", "numpy", "scipy", "osqp", "qpsolvers", "clarabel", "cvxpy")},
-    }
 
 
 def run_one(instrument: str, n: int, kind: str, seed: int, planner: str, overrides: dict[str, Any]) -> dict[str, Any]:
@@ -241,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": f"mpc_{args.set}",
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "command": "python benchmarks/bench_mpc.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "machine": machine_info(),
+        "machine": machine_info(("osqp", "qpsolvers", "clarabel", "cvxpy")),
         "parameters": {
             "instrument": spec["instrument"],
             "kinds": kinds,

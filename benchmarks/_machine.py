@@ -1,0 +1,31 @@
+"""Machine and package description written into every benchmark result file."""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+from importlib.metadata import PackageNotFoundError, version
+from typing import Any
+
+BASE_PACKAGES = ("fiberplan", "numpy", "scipy")
+
+
+def package_version(name: str) -> str:
+    """Installed version of a distribution, or "not installed"."""
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return "not installed"
+
+
+def machine_info(extra_packages: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Platform, CPU count, load average at start, and the versions of the packages that matter."""
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "python": sys.version.split()[0],
+        "cpu_count": os.cpu_count(),
+        "load_average_at_start": list(os.getloadavg()),
+        "packages": {name: package_version(name) for name in (*BASE_PACKAGES, *extra_packages)},
+    }
