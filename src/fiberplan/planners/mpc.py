@@ -73,6 +73,8 @@ class MpcSettings:
         deadlock_window_steps: steps without progress that mark a positioner deadlocked.
         max_duration_factor: the run stops after this many times the lower bound ...
         max_duration_extra_s: ... plus this many seconds.
+        wait_rules: resolve a deadlocked pair whose targets impose an order by sending the
+            one that must wait to a waiting configuration (:func:`waiting_configuration`).
         executor: ``sequential`` or ``parallel``.
         workers: processes of the parallel executor (the planning process counts as one).
         qp_solver: ``osqp`` (persistent workspaces, the fast path) or a qpsolvers backend name.
@@ -96,8 +98,10 @@ class MpcSettings:
     max_neighbour_constraints: int = 6
     max_input_change: float | None = None
     deadlock_window_steps: int = 40
+    deadlock_progress_fraction: float = 0.0125
     max_duration_factor: float = 4.0
     max_duration_extra_s: float = 1.0
+    wait_rules: bool = True
     executor: str = "sequential"
     workers: int = 2
     qp_solver: str = "osqp"
@@ -190,6 +194,64 @@ def straight_path(q: np.ndarray, goal: np.ndarray, step_rad: np.ndarray, n_steps
     return q[:, None, :] + np.clip(delta, -k * step_rad, k * step_rad)
 
 
+def _path_clearance(
+    scenario: Scenario, mover: np.ndarray, other: np.ndarray, q_from: np.ndarray, q_to: np.ndarray, q_other: np.ndarray,
+    step_rad: np.ndarray, stride: int = 2,
+) -> np.ndarray:
+    """Smallest clearance of ``mover`` along its saturated path ``q_from -> q_to`` to ``other`` held at ``q_other``.
+
+    All arrays are row-matched (one row per directed pair); the path is sampled every ``stride``
+    control steps and at its end.
+    """
+    if len(mover) == 0:
+        return np.zeros(0)
+    n_steps = int(np.ceil(np.max(np.abs(q_to - q_from) / step_rad, initial=0.0))) + 1
+    path = straight_path(q_from, q_to, stride * step_rad, max(1, int(np.ceil(n_steps / stride))))  # (M, K, 2)
+    k = path.shape[1]
+    c = clearance_between(
+        scenario.instrument,
+        np.repeat(scenario.base_xy[mover], k, axis=0), np.repeat(scenario.orient[mover], k), path.reshape(-1, 2),
+        np.repeat(scenario.base_xy[other], k, axis=0), np.repeat(scenario.orient[other], k), np.repeat(q_other, k, axis=0),
+    ).min(axis=-1)
+    return c.reshape(-1, k).min(axis=1)
+
+
+def waiting_configuration(
+    scenario: Scenario, first: int, waiter: int, q: np.ndarray, datum: np.ndarray, step_rad: np.ndarray, blocked_mm: float,
+) -> np.ndarray | None:
+    """Where ``waiter`` should wait so that its neighbour ``first`` can arrive first, or ``None``.
+
+    Precedence from the targets: ``first`` must arrive first when its straight path from ``q``
+    to its target passes closer than ``blocked_mm`` to ``waiter`` at its target. The waiting
+    configuration is the first of: ``waiter``'s start, folded at its target alpha, folded at
+    its current alpha, such that ``first``'s path clears it and ``waiter``'s path from it to its
+    target clears ``first`` at its target.
+    """
+    f, w = np.array([first]), np.array([waiter])
+    target = scenario.target
+    if _path_clearance(scenario, f, w, q[f], target[f], target[w], step_rad)[0] >= blocked_mm:
+        return None  # no precedence: first's path is free of waiter's target
+    candidates = np.array([
+        scenario.start[waiter],
+        [target[waiter, 0], datum[waiter, 1]],
+        [q[waiter, 0], datum[waiter, 1]],
+    ])
+    m = len(candidates)
+    ff, ww = np.repeat(f, m), np.repeat(w, m)
+    ok = _path_clearance(scenario, ff, ww, np.repeat(q[f], m, axis=0), np.repeat(target[f], m, axis=0), candidates, step_rad) >= blocked_mm
+    ok &= _path_clearance(scenario, ww, ff, candidates, np.repeat(target[w], m, axis=0), np.repeat(target[f], m, axis=0), step_rad) >= blocked_mm
+    good = np.flatnonzero(ok)
+    return candidates[good[0]] if len(good) else None
+
+
+def outranks(a: np.ndarray, b: np.ndarray, rank: np.ndarray, defer_to: np.ndarray) -> np.ndarray:
+    """Whether ``a`` has priority over ``b`` (row-wise): global ``rank``, except that a waiter
+    ``w`` always defers to the neighbour ``defer_to[w]`` it waits for."""
+    res = rank[a] < rank[b]
+    res = np.where(defer_to[b] == a, True, res)
+    return np.where(defer_to[a] == b, False, res)
+
+
 @dataclass
 class _Counters:
     qp_solves: int = 0
@@ -200,6 +262,7 @@ class _Counters:
     safety_holds: int = 0
     safety_iterations_max: int = 0
     retreats: int = 0
+    waiting: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 class _SafetyLayer:
@@ -258,7 +321,9 @@ class _SafetyLayer:
             bad[rows] = np.any(lower < 0.5 * f[rows], axis=0) | np.any(c_mid < f[rows], axis=0)
         return bad
 
-    def apply(self, q: np.ndarray, q_next: np.ndarray, c_now: np.ndarray, rank: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    def apply(
+        self, q: np.ndarray, q_next: np.ndarray, c_now: np.ndarray, rank: np.ndarray, defer_to: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, int]:
         """Return the safe next configuration, which positioners were stopped, and iterations.
 
         For an unsafe pair, the lower-priority mover is stopped if that makes the pair safe,
@@ -285,7 +350,7 @@ class _SafetyLayer:
             bp = pairs[idx[bad]]
             c0b = c_now[idx[bad]]
             i, j = bp[:, 0], bp[:, 1]
-            i_first = rank[i] < rank[j]  # i has the higher priority
+            i_first = outranks(i, j, rank, defer_to)  # i has the higher priority
             hi = np.where(i_first, i, j)
             lo = np.where(i_first, j, i)
             moving = np.any(q_next != q, axis=1)
@@ -321,6 +386,11 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     rho = np.array([inst.alpha_point_extent_mm, inst.beta_point_extent_mm])
     step_mm = float(rho @ step_rad)
     datum = np.broadcast_to(np.array(inst.datum_rad), (n, 2))
+    # Waiting rules activated by deadlocks: waiter -> (first, waiting configuration).
+    wait_first = np.full(n, -1, dtype=np.int64)
+    wait_q = np.zeros((n, 2))
+    first_arrived = np.zeros(n, dtype=bool)
+    n_rules = 0
 
     weights = QpWeights(
         tracking=settings.weight_tracking,
@@ -349,7 +419,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     own_plan = plan.copy()  # linearisation points of each positioner's own QP
     v_prev = np.zeros((n, 2))
     history = [q.copy()]
-    counters = _Counters()
+    counters = _Counters(waiting=np.zeros(n, dtype=bool))
     solve_times: list[np.ndarray] = []
     iter_counts: list[np.ndarray] = []
     qp_per_step: list[int] = []
@@ -364,7 +434,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     ever_yielded = np.zeros(n, dtype=bool)
     yield_until = np.zeros(n, dtype=np.int64)
     yield_to = np.zeros(n, dtype=np.int64)
-    progress_eps = 0.5 * h
+    waiting = np.zeros(n, dtype=bool)
+    progress_eps = settings.deadlock_progress_fraction * window * h
 
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
     try:
@@ -389,13 +460,32 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # Stalled: the best time-to-go has not improved for a window.
             improved = ttg_final < best_ttg - progress_eps
             best_ttg = np.where(improved, ttg_final, best_ttg)
-            last_progress = np.where(improved | at_goal_final, step, last_progress)
+            last_progress = np.where(improved | at_goal_final | waiting, step, last_progress)
+            best_ttg = np.where(waiting, ttg_final, best_ttg)
             stalled = (step - last_progress >= window) & ~at_goal_final
             new_dead = stalled & (level == 0)
             first_dead[new_dead & ~ever_deadlocked] = step
             ever_deadlocked |= new_dead
             level[new_dead] = 1
             level_since[new_dead] = step
+            if settings.wait_rules and np.any(new_dead) and n_pairs:
+                # A deadlocked pair whose targets impose an order: the one that must wait goes
+                # to a waiting configuration, the other keeps top priority.
+                hit = new_dead[pairs[:, 0]] | new_dead[pairs[:, 1]]
+                for r in np.flatnonzero(hit & (c_now < settings.conflict_radius_mm)):
+                    a, b = int(pairs[r, 0]), int(pairs[r, 1])
+                    for first, waiter in ((a, b), (b, a)):
+                        if wait_first[first] >= 0 or wait_first[waiter] >= 0 or at_goal_final[first]:
+                            continue
+                        wq = waiting_configuration(scenario, first, waiter, q, datum, step_rad, settings.margin_mm)
+                        if wq is not None:
+                            wait_first[waiter] = first
+                            wait_q[waiter] = wq
+                            level[waiter] = 0
+                            level[first] = 1
+                            level_since[first] = step
+                            n_rules += 1
+                            break
             # Still stuck with top priority for two more windows: retreat sub-goals, i.e. fold
             # the beta arm (level 2), turn alpha to the target while folded (level 3), then
             # unfold with top priority again (level 1).
@@ -429,7 +519,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # a deadlocked positioner remains.
             if len(sel):
                 ci, cj = pairs[sel, 0], pairs[sel, 1]
-                i_first = rank[ci] < rank[cj]
+                i_first = outranks(ci, cj, rank, wait_first)
                 hi = np.where(i_first, ci, cj)
                 lo = np.where(i_first, cj, ci)
                 pushing = level[hi] == 1
@@ -439,7 +529,19 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             fold = yielding | (level == 2)
             ever_yielded |= yielding
             goal = goal_final.copy()
-            goal[fold, 0] = q[fold, 0]
+            # Waiting rules: a waiter holds its waiting configuration until its neighbour has
+            # arrived (the rule then ends).
+            # Two phases: the waiter goes to its waiting configuration and stays there until its
+            # neighbour has arrived, then moves to its target still deferring to that neighbour;
+            # the rule ends when it arrives.
+            has_rule = wait_first >= 0
+            first_arrived |= has_rule & at_goal_final[np.maximum(wait_first, 0)] & np.all(q == wait_q, axis=1)
+            ended = has_rule & at_goal_final
+            wait_first[ended] = -1
+            first_arrived[ended] = False
+            waiting = (wait_first >= 0) & ~first_arrived
+            goal[waiting] = wait_q[waiting]
+            counters.waiting |= waiting
             goal[fold, 1] = datum[fold, 1]
             goal[level == 3, 1] = datum[level == 3, 1]
 
@@ -451,7 +553,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             if len(cand):
                 if len(sel):
                     batch = _build_batch(
-                        scenario, settings, layout, pairs[sel], margin_cap[sel], q, own_plan, plan, ref, v_prev, rank, boosted,
+                        scenario, settings, layout, pairs[sel], margin_cap[sel], q, own_plan, plan, ref, v_prev, rank, wait_first, boosted,
                         step_rad, lim,
                     )
                     result = executor.solve(batch)
@@ -482,7 +584,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             q_next[near] = goal[near]
 
             # --- safety layer: exact distances of what will actually be executed.
-            q_next, held, iters = safety.apply(q, q_next, c_now, rank)
+            q_next, held, iters = safety.apply(q, q_next, c_now, rank, wait_first)
             counters.safety_holds += int(held.sum())
             counters.safety_iterations_max = max(counters.safety_iterations_max, iters)
 
@@ -536,6 +638,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         "deadlocks_remaining": int(np.sum(~reached & scenario.has_target)),
         "retreats": counters.retreats,
         "yielding_positioners": int(ever_yielded.sum()),
+        "waiting_rules": n_rules,
+        "waiting_positioners": int(counters.waiting.sum()),
         "n_slots": n_slots,
     }
     return PlanResult(
@@ -560,6 +664,7 @@ def _build_batch(
     ref: np.ndarray,
     v_prev: np.ndarray,
     rank: np.ndarray,
+    defer_to: np.ndarray,
     boosted: np.ndarray,
     step_rad: np.ndarray,
     lim: np.ndarray,
@@ -588,7 +693,7 @@ def _build_batch(
     rows = np.arange(R)
     g2 = pc.clearance[rows, best].reshape(n_d, H)
     grad = pc.grad_i[rows, best].reshape(n_d, H, 2)
-    higher = rank[owner] < rank[nbr]
+    higher = outranks(owner, nbr, rank, defer_to)
     cap2 = np.concatenate([cap_mm, cap_mm])
     margin = np.minimum(np.where(higher, settings.priority_margin_mm, settings.margin_mm), cap2)
     # A deadlocked positioner (boosted) plans straight through lower-priority neighbours,
