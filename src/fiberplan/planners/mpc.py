@@ -73,6 +73,8 @@ class MpcSettings:
         deadlock_window_steps: steps without progress that mark a positioner deadlocked.
         max_duration_factor: the run stops after this many times the lower bound ...
         max_duration_extra_s: ... plus this many seconds.
+        stop_after_stalled_windows: the run also stops once every positioner not at its target
+            has made no progress for this many deadlock windows (0: never).
         wait_rules: resolve a deadlocked pair whose targets impose an order by sending the
             one that must wait to a waiting configuration (:func:`waiting_configuration`).
         executor: ``sequential`` or ``parallel``.
@@ -83,7 +85,7 @@ class MpcSettings:
     """
 
     dt_s: float = 0.01
-    horizon_steps: int = 8
+    horizon_steps: int = 4
     weight_tracking: float = 1.0
     weight_terminal: float = 5.0
     weight_input: float = 0.01
@@ -101,11 +103,12 @@ class MpcSettings:
     deadlock_progress_fraction: float = 0.0125
     max_duration_factor: float = 4.0
     max_duration_extra_s: float = 1.0
+    stop_after_stalled_windows: int = 8
     wait_rules: bool = True
     executor: str = "sequential"
     workers: int = 2
     qp_solver: str = "osqp"
-    osqp_eps: float = 1e-4
+    osqp_eps: float = 1e-3
     osqp_max_iter: int = 400
 
     @classmethod
@@ -154,6 +157,8 @@ class MpcSettings:
         for name, value in non_negative.items():
             if not (np.isfinite(value) and value >= 0):
                 raise PlannerError(f"mpc: {name} must be a finite number >= 0, found {value}")
+        if int(self.stop_after_stalled_windows) != self.stop_after_stalled_windows or self.stop_after_stalled_windows < 0:
+            raise PlannerError(f"mpc: stop_after_stalled_windows must be an integer >= 0, found {self.stop_after_stalled_windows}")
         for name, value in (("horizon_steps", self.horizon_steps), ("deadlock_window_steps", self.deadlock_window_steps),
                             ("workers", self.workers), ("osqp_max_iter", self.osqp_max_iter),
                             ("max_neighbour_constraints", self.max_neighbour_constraints)):
@@ -276,6 +281,10 @@ class _SafetyLayer:
         self.floor = floor_mm
         self.subdivisions = subdivisions
         self.rho = np.array([self.inst.alpha_point_extent_mm, self.inst.beta_point_extent_mm])
+        # Per pair: the floor, but at most half the pair's clearance at the targets, so that
+        # targets closer together than the floor stay reachable (still proven > 0 in between).
+        c_target = self.clearance(scenario.target, self.pairs)
+        self.pair_floor = np.minimum(floor_mm, 0.5 * np.maximum(c_target, 0.0))
 
     def clearance(self, joints: np.ndarray, pairs: np.ndarray) -> np.ndarray:
         """Smallest clearance over capsule combinations of each pair, all at ``joints``."""
@@ -288,7 +297,7 @@ class _SafetyLayer:
         i, j = pairs[:, 0], pairs[:, 1]
         return clearance_between(self.inst, self.base[i], self.orient[i], qi, self.base[j], self.orient[j], qj).min(axis=-1)
 
-    def unsafe(self, pairs: np.ndarray, q: np.ndarray, q_next: np.ndarray, c0: np.ndarray) -> np.ndarray:
+    def unsafe(self, pairs: np.ndarray, q: np.ndarray, q_next: np.ndarray, c0: np.ndarray, floor: np.ndarray) -> np.ndarray:
         """Which pairs are unsafe when moving from ``q`` to ``q_next`` (linear in joints).
 
         Safe: clearance at the next sample ``c1 >= f = min(floor, c0)``, and the clearance
@@ -302,7 +311,7 @@ class _SafetyLayer:
         motion_i = np.abs(q_next[i] - q[i]) @ self.rho
         motion_j = np.abs(q_next[j] - q[j]) @ self.rho
         bound = motion_i + motion_j
-        f = np.minimum(self.floor, c0)
+        f = np.minimum(floor, c0)
         c1 = self._between(pairs, q_next[i], q_next[j])
         bad = c1 < f
         coarse = ~bad & (0.5 * (c0 + c1 - bound) < 0.5 * f)
@@ -340,15 +349,16 @@ class _SafetyLayer:
         while True:
             motion = np.abs(q_next - q) @ self.rho
             bound = motion[i_all] + motion[j_all]
-            idx = np.flatnonzero((bound > 0) & (c_now - bound < self.floor + 1e-9))
+            idx = np.flatnonzero((bound > 0) & (c_now - bound < self.pair_floor + 1e-9))
             if len(idx) == 0:
                 break
-            bad = self.unsafe(pairs[idx], q, q_next, c_now[idx])
+            bad = self.unsafe(pairs[idx], q, q_next, c_now[idx], self.pair_floor[idx])
             if not np.any(bad):
                 break
             iterations += 1
             bp = pairs[idx[bad]]
             c0b = c_now[idx[bad]]
+            fb = self.pair_floor[idx[bad]]
             i, j = bp[:, 0], bp[:, 1]
             i_first = outranks(i, j, rank, defer_to)  # i has the higher priority
             hi = np.where(i_first, i, j)
@@ -358,8 +368,8 @@ class _SafetyLayer:
             q_a[lo] = q[lo]
             q_b = q_next.copy()
             q_b[hi] = q[hi]
-            ok_a = moving[lo] & ~self.unsafe(bp, q, q_a, c0b)
-            ok_b = moving[hi] & ~ok_a & ~self.unsafe(bp, q, q_b, c0b)
+            ok_a = moving[lo] & ~self.unsafe(bp, q, q_a, c0b, fb)
+            ok_b = moving[hi] & ~ok_a & ~self.unsafe(bp, q, q_b, c0b, fb)
             both = ~ok_a & ~ok_b
             stop = np.unique(np.concatenate([lo[ok_a], hi[ok_b], lo[both], hi[both]]))
             stop = stop[moving[stop]]
@@ -404,7 +414,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     safety = _SafetyLayer(scenario, settings.safety_margin_mm)
     # A pair whose targets are closer than the margins could never both arrive: its QP
     # margins are capped at half its clearance at the targets.
-    margin_cap = 0.5 * np.maximum(safety.clearance(goal_final, pairs), 0.0)
+    margin_cap = 0.5 * np.maximum(safety.clearance(goal_final, pairs), 0.0) if n_pairs else np.zeros(0)
 
     move = np.max(np.abs(goal_final - scenario.start) / inst.speeds_rad_s, axis=1)
     bound_s = float(move[scenario.has_target].max()) if np.any(scenario.has_target) else 0.0
@@ -435,6 +445,9 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     yield_until = np.zeros(n, dtype=np.int64)
     yield_to = np.zeros(n, dtype=np.int64)
     waiting = np.zeros(n, dtype=bool)
+    stopped_stalled = False
+    best_ever = move.copy()  # best time-to-go ever (not reset by retreats)
+    last_best_ever = np.zeros(n, dtype=np.int64)
     progress_eps = settings.deadlock_progress_fraction * window * h
 
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
@@ -443,7 +456,22 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             at_goal_final = np.all(q == goal_final, axis=1)
             if np.all(at_goal_final):
                 break
+            # Nothing left can progress: no positioner not at its target has come closer than it
+            # ever was for stop_after_stalled_windows windows (a retreat cycle included), waiters
+            # included unless the neighbour they wait for is still on its way. Planning on would
+            # only burn time.
+            if settings.stop_after_stalled_windows and np.all(
+                at_goal_final | (step - last_best_ever >= settings.stop_after_stalled_windows * window)
+            ):
+                stopped_stalled = True
+                break
             ttg_final = np.max(np.abs(goal_final - q) / inst.speeds_rad_s, axis=1)
+            better = ttg_final < best_ever - progress_eps
+            best_ever = np.where(better, ttg_final, best_ever)
+            # A waiter counts as progressing while the neighbour it waits for is on its way.
+            first = np.maximum(wait_first, 0)
+            first_moving = ~at_goal_final[first] & (step - last_best_ever[first] < settings.stop_after_stalled_windows * window)
+            last_best_ever = np.where(better | (waiting & first_moving), step, last_best_ever)
 
             # --- conflict detection (depends only on the configuration and the published plans).
             # Two positioners holding still at their goals need no QP: nothing changes.
@@ -641,6 +669,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         "waiting_rules": n_rules,
         "waiting_positioners": int(counters.waiting.sum()),
         "n_slots": n_slots,
+        "stopped_stalled": stopped_stalled,
     }
     return PlanResult(
         scenario=scenario,

@@ -269,17 +269,34 @@ class PositionerQP:
             eps_dual_inf=1e-6,
         )
 
+        # The extension-level solver: the same calls ``osqp.OSQP.update`` / ``solve`` make, without
+        # their per-call Python bookkeeping (derivative caches, info namespaces, constant
+        # look-ups), which cost as much as the solve itself for these small QPs. Falls back to
+        # the public interface if a future osqp release changes it.
+        ext = getattr(self._solver, "_solver", None)
+        self._ext = ext if all(hasattr(ext, a) for a in ("update_data_vec", "update_data_mat", "solve", "info", "solution")) else None
+        self._infty = float(self._solver.constant("OSQP_INFTY"))
+
     def solve(self, data: QpData) -> tuple[int, np.ndarray | None, int]:
         """Update the workspace and solve; returns ``(status, x or None, iterations)``."""
         q, lo, hi, ax = self.layout.assemble(data)
-        self._solver.update(q=q, l=lo, u=hi, Ax=ax)
-        res = self._solver.solve(raise_error=False)
-        status_val = int(res.info.status_val)
+        if self._ext is None:
+            self._solver.update(q=q, l=lo, u=hi, Ax=ax)
+            res = self._solver.solve(raise_error=False)
+            status_val, x, iters = int(res.info.status_val), res.x, int(res.info.iter)
+        else:
+            ext = self._ext
+            ext.update_data_vec(q=q, l=np.maximum(lo, -self._infty), u=np.minimum(hi, self._infty))
+            ext.update_data_mat(P_x=None, P_i=None, A_x=ax, A_i=None)
+            ext.solve()
+            info = ext.info
+            status_val, iters = int(info.status_val), int(info.iter)
+            x = np.array(ext.solution.x) if status_val in (STATUS_SOLVED, STATUS_INACCURATE) else None
         if status_val == STATUS_SOLVED:
-            return STATUS_SOLVED, np.asarray(res.x), int(res.info.iter)
-        if status_val == STATUS_INACCURATE and res.x is not None and np.all(np.isfinite(res.x)):
-            return STATUS_INACCURATE, np.asarray(res.x), int(res.info.iter)
-        return STATUS_FAILED, None, int(res.info.iter)
+            return STATUS_SOLVED, np.asarray(x), iters
+        if status_val == STATUS_INACCURATE and x is not None and np.all(np.isfinite(x)):
+            return STATUS_INACCURATE, np.asarray(x), iters
+        return STATUS_FAILED, None, iters
 
 
 def solve_with_qpsolvers(layout: QpLayout, data: QpData, solver: str) -> tuple[int, np.ndarray | None, int]:
