@@ -83,6 +83,8 @@ def test_defaults_scale_with_the_instrument():
         ({"qp_solver": "nope"}, "qp_solver"),
         ({"margin_mm": float("nan")}, "margin_mm"),
         ({"max_input_change": 0.0}, "max_input_change"),
+        ({"stop_after_stalled_windows": -1}, "stop_after_stalled_windows"),
+        ({"deadlock_progress_fraction": 1.5}, "deadlock_progress_fraction"),
     ],
 )
 def test_bad_settings_are_rejected(override, match):

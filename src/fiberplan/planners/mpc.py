@@ -153,6 +153,7 @@ class MpcSettings:
             "safety_margin_mm": self.safety_margin_mm,
             "conflict_radius_mm": self.conflict_radius_mm,
             "max_duration_extra_s": self.max_duration_extra_s,
+            "deadlock_progress_fraction": self.deadlock_progress_fraction,
         }
         for name, value in non_negative.items():
             if not (np.isfinite(value) and value >= 0):
@@ -164,6 +165,8 @@ class MpcSettings:
                             ("max_neighbour_constraints", self.max_neighbour_constraints)):
             if int(value) != value or value < 1:
                 raise PlannerError(f"mpc: {name} must be an integer >= 1, found {value}")
+        if self.deadlock_progress_fraction >= 1:
+            raise PlannerError(f"mpc: deadlock_progress_fraction must be < 1, found {self.deadlock_progress_fraction}")
         if self.max_input_change is not None and not (self.max_input_change > 0):
             raise PlannerError(f"mpc: max_input_change must be > 0 or None, found {self.max_input_change}")
         if self.executor not in ("sequential", "parallel"):
@@ -230,12 +233,15 @@ def waiting_configuration(
     to its target passes closer than ``blocked_mm`` to ``waiter`` at its target. The waiting
     configuration is the first of: ``waiter``'s start, folded at its target alpha, folded at
     its current alpha, such that ``first``'s path clears it and ``waiter``'s path from it to its
-    target clears ``first`` at its target.
+    target clears ``first`` at its target. ``first``'s path blocked by where ``waiter`` is now
+    also imposes the order (a face-to-face deadlock mid-way).
     """
     f, w = np.array([first]), np.array([waiter])
     target = scenario.target
-    if _path_clearance(scenario, f, w, q[f], target[f], target[w], step_rad)[0] >= blocked_mm:
-        return None  # no precedence: first's path is free of waiter's target
+    blockers = np.array([target[waiter], q[waiter]])
+    f2, w2 = np.repeat(f, 2), np.repeat(w, 2)
+    if np.all(_path_clearance(scenario, f2, w2, q[f2], target[f2], blockers, step_rad) >= blocked_mm):
+        return None  # no precedence: first's path is free of waiter's target and of where it is
     candidates = np.array([
         scenario.start[waiter],
         [target[waiter, 0], datum[waiter, 1]],
