@@ -197,6 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=2, help="worker processes of the parallel executor (scaling)")
     parser.add_argument("--set-override", action="append", default=[], metavar="KEY=JSON", help="mpc setting override")
     parser.add_argument("--out", type=Path, help="output file (default benchmarks/results/mpc_<set>.json)")
+    parser.add_argument("--budget-s", type=float, help="stop starting new seeds of a (kind, N) group after this many seconds")
     args = parser.parse_args(argv)
 
     if args.set == "table":
@@ -240,10 +241,18 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     for kind in kinds:
         for n in sizes:
-            for label, planner, over in variants:
+            cells = []
+            for label, _planner, over in variants:
                 cell: dict[str, Any] = {"kind": kind, "n_positioners": n, "planner": label, "overrides": over, "runs": []}
                 document["cells"].append(cell)
-                for seed in range(args.first_seed, args.first_seed + args.seeds):
+                cells.append(cell)
+            t_group = time.perf_counter()
+            # Seeds outermost, so that every planner has run the same seeds when a budget stops the group.
+            for seed in range(args.first_seed, args.first_seed + args.seeds):
+                if args.budget_s is not None and time.perf_counter() - t_group > args.budget_s:
+                    document.setdefault("stopped_by_budget", []).append({"kind": kind, "n_positioners": n, "next_seed": seed})
+                    break
+                for cell, (label, planner, over) in zip(cells, variants, strict=True):
                     record = run_one(spec["instrument"], n, kind, seed, planner, over)
                     cell["runs"].append(record)
                     cell["summary"] = _agg(cell["runs"])

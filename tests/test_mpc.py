@@ -270,6 +270,18 @@ def test_waiting_rule_orders_a_pair_whose_targets_interlock():
     assert waiting_configuration(sc, 149, 137, sc.start, datum, step_rad, settings.margin_mm) is None
 
 
+def test_run_stops_when_nothing_can_progress_and_loses_nothing():
+    # DESI seed 0, N = 500 leaves one positioner stuck; the stop rule ends the run early, and
+    # planning on to the time limit reaches no more targets.
+    sc = make_scenario("desi", 500, "random", 0)
+    stopped = plan(sc, "mpc")
+    full = plan(sc, "mpc", {"stop_after_stalled_windows": 0})
+    assert stopped.stats["stopped_stalled"] and not full.stats["stopped_stalled"]
+    assert stopped.stats["n_steps"] < full.stats["n_steps"]
+    _check_safe(stopped)
+    assert np.sum(stopped.outcome == "reached") == np.sum(full.outcome == "reached") < sc.n_positioners
+
+
 def test_outranks_lets_a_waiter_defer_whatever_the_rank():
     rank = np.array([2, 0, 1])
     defer_to = np.array([-1, 0, -1])  # 1 waits for 0
