@@ -294,8 +294,8 @@ class _SafetyLayer:
         self.rho = np.array([self.inst.alpha_point_extent_mm, self.inst.beta_point_extent_mm])
         # Per pair: the floor, but at most half the pair's clearance at the targets, so that
         # targets closer together than the floor stay reachable (still proven > 0 in between).
-        c_target = self.clearance(scenario.target, self.pairs)
-        self.pair_floor = np.minimum(floor_mm, 0.5 * np.maximum(c_target, 0.0))
+        self.half_target_clearance = 0.5 * np.maximum(self.clearance(scenario.target, self.pairs), 0.0)
+        self.pair_floor = np.minimum(floor_mm, self.half_target_clearance)
 
     def clearance(self, joints: np.ndarray, pairs: np.ndarray) -> np.ndarray:
         """Smallest clearance over capsule combinations of each pair, all at ``joints``."""
@@ -425,7 +425,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     safety = _SafetyLayer(scenario, settings.safety_margin_mm)
     # A pair whose targets are closer than the margins could never both arrive: its QP
     # margins are capped at half its clearance at the targets.
-    margin_cap = 0.5 * np.maximum(safety.clearance(goal_final, pairs), 0.0) if n_pairs else np.zeros(0)
+    margin_cap = safety.half_target_clearance
 
     move = np.max(np.abs(goal_final - scenario.start) / inst.speeds_rad_s, axis=1)
     bound_s = float(move[scenario.has_target].max()) if np.any(scenario.has_target) else 0.0
