@@ -12,6 +12,7 @@ over any leading time axes) with numpy.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +20,21 @@ import numpy as np
 from fiberplan.instrument import Instrument
 
 _EPS = 1e-12  # distances below this (mm) count as contact for gradients
+
+
+@functools.lru_cache(maxsize=32)
+def _capsule_tables(instrument: Instrument) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-capsule arrays ``(on_alpha, start_mm, end_mm)`` and the same-layer ``combos (K, 2)``
+    with their radii sums ``(K,)``, computed once per instrument."""
+    caps = instrument.capsules
+    on_alpha = np.array([c.arm == "alpha" for c in caps])
+    start_mm = np.array([c.start_mm for c in caps])
+    end_mm = np.array([c.end_mm for c in caps])
+    combos = np.array(instrument.capsule_pairs, dtype=np.int64).reshape(-1, 2)
+    radii = np.array([c.radius_mm for c in caps])
+    for arr in (on_alpha, start_mm, end_mm, combos, radii):
+        arr.flags.writeable = False
+    return on_alpha, start_mm, end_mm, combos, radii[combos[:, 0]] + radii[combos[:, 1]]
 
 
 def capsule_segments(
@@ -35,29 +51,33 @@ def capsule_segments(
     Returns:
         ``(start, end)``, each of shape ``(..., N, C, 2)`` for the instrument's ``C`` capsules.
     """
+    on_alpha, start_mm, end_mm, _, _ = _capsule_tables(instrument)
     a = joints[..., 0] + orient
     ab = a + joints[..., 1]
-    ua = np.stack([np.cos(a), np.sin(a)], axis=-1)
-    uab = np.stack([np.cos(ab), np.sin(ab)], axis=-1)
-    elbow = base_xy + instrument.alpha_arm_mm * ua
-    starts, ends = [], []
-    for capsule in instrument.capsules:
-        origin, direction = (base_xy, ua) if capsule.arm == "alpha" else (elbow, uab)
-        starts.append(origin + capsule.start_mm * direction)
-        ends.append(origin + capsule.end_mm * direction)
-    return np.stack(starts, axis=-2), np.stack(ends, axis=-2)
+    cos_a, sin_a = np.cos(a), np.sin(a)
+    base_x, base_y = base_xy[..., 0], base_xy[..., 1]
+    # Per capsule (last axis): the joint it hangs from and the direction of its arm.
+    origin_x = np.where(on_alpha, base_x[..., None], (base_x + instrument.alpha_arm_mm * cos_a)[..., None])
+    origin_y = np.where(on_alpha, base_y[..., None], (base_y + instrument.alpha_arm_mm * sin_a)[..., None])
+    dir_x = np.where(on_alpha, cos_a[..., None], np.cos(ab)[..., None])
+    dir_y = np.where(on_alpha, sin_a[..., None], np.sin(ab)[..., None])
+    start = np.stack([origin_x + start_mm * dir_x, origin_y + start_mm * dir_y], axis=-1)
+    end = np.stack([origin_x + end_mm * dir_x, origin_y + end_mm * dir_y], axis=-1)
+    return start, end
 
 
-def _point_to_segment(p: np.ndarray, a: np.ndarray, d: np.ndarray, dd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distance from points ``p`` to segments ``a + u d`` (``dd = d . d``) and the parameter ``u``."""
-    u = np.clip(np.einsum("...i,...i->...", p - a, d) / np.where(dd > 0.0, dd, 1.0), 0.0, 1.0)
-    u = np.where(dd > 0.0, u, 0.0)
-    diff = p - (a + u[..., None] * d)
-    return np.sqrt(np.einsum("...i,...i->...", diff, diff)), u
-
-
-def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+def _point_to_segment(
+    px: np.ndarray, py: np.ndarray, ax: np.ndarray, ay: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+    nonzero: np.ndarray, safe_dd: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Distance from points ``p`` to segments ``a + u d`` and the parameter ``u`` (components
+    apart: these arrays are small and numpy's per-call cost dominates). ``nonzero`` marks
+    segments of positive length ``dd = d . d``; ``safe_dd`` is ``dd`` with zeros replaced by 1."""
+    u = np.minimum(np.maximum(((px - ax) * dx + (py - ay) * dy) / safe_dd, 0.0), 1.0)
+    u = np.where(nonzero, u, 0.0)
+    ex = px - (ax + u * dx)
+    ey = py - (ay + u * dy)
+    return np.sqrt(ex * ex + ey * ey), u
 
 
 def segment_distance(
@@ -72,35 +92,42 @@ def segment_distance(
         \min(d(p_0, Q), d(p_1, Q), d(q_0, P), d(q_1, P)) & \text{otherwise} \end{cases}
 
     which, unlike the 3-D closest-approach formula, stays exact for (nearly) parallel and
-    zero-length segments. Vectorised over leading axes.
+    zero-length segments. Vectorised over leading axes; ties go to the first candidate in the
+    order above.
 
     Returns:
         ``(distance, s, t)``: closest points are ``p0 + s (p1 - p0)`` and ``q0 + t (q1 - q0)``.
     """
-    d1 = p1 - p0
-    d2 = q1 - q0
-    a = np.einsum("...i,...i->...", d1, d1)
-    e = np.einsum("...i,...i->...", d2, d2)
-    dist_p0, t_p0 = _point_to_segment(p0, q0, d2, e)
-    dist_p1, t_p1 = _point_to_segment(p1, q0, d2, e)
-    dist_q0, s_q0 = _point_to_segment(q0, p0, d1, a)
-    dist_q1, s_q1 = _point_to_segment(q1, p0, d1, a)
-    cand_d = np.stack([dist_p0, dist_p1, dist_q0, dist_q1])
-    cand_s = np.stack([np.zeros_like(a), np.ones_like(a), s_q0, s_q1])
-    cand_t = np.stack([t_p0, t_p1, np.zeros_like(e), np.ones_like(e)])
-    best = np.argmin(cand_d, axis=0)[None]
-    dist = np.take_along_axis(cand_d, best, axis=0)[0]
-    s = np.take_along_axis(cand_s, best, axis=0)[0]
-    t = np.take_along_axis(cand_t, best, axis=0)[0]
+    p0x, p0y, p1x, p1y = p0[..., 0], p0[..., 1], p1[..., 0], p1[..., 1]
+    q0x, q0y, q1x, q1y = q0[..., 0], q0[..., 1], q1[..., 0], q1[..., 1]
+    d1x, d1y = p1x - p0x, p1y - p0y
+    d2x, d2y = q1x - q0x, q1y - q0y
+    a = d1x * d1x + d1y * d1y
+    e = d2x * d2x + d2y * d2y
+    a_nz, e_nz = a > 0.0, e > 0.0
+    a_safe, e_safe = np.where(a_nz, a, 1.0), np.where(e_nz, e, 1.0)
+    dist, t = _point_to_segment(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)
+    s = np.zeros_like(dist)
+    d_c, t_c = _point_to_segment(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)
+    better = d_c < dist
+    dist, s, t = np.where(better, d_c, dist), np.where(better, 1.0, s), np.where(better, t_c, t)
+    d_c, s_c = _point_to_segment(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)
+    better = d_c < dist
+    dist, s, t = np.where(better, d_c, dist), np.where(better, s_c, s), np.where(better, 0.0, t)
+    d_c, s_c = _point_to_segment(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)
+    better = d_c < dist
+    dist, s, t = np.where(better, d_c, dist), np.where(better, s_c, s), np.where(better, 1.0, t)
     # Proper crossing: each segment's end points lie strictly on both sides of the other.
-    r = q0 - p0
-    denom = _cross(d1, d2)
-    side_q0, side_q1 = _cross(d1, r), _cross(d1, q1 - p0)
-    side_p0, side_p1 = _cross(d2, -r), _cross(d2, p1 - q0)
+    rx, ry = q0x - p0x, q0y - p0y
+    denom = d1x * d2y - d1y * d2x
+    side_q0 = d1x * ry - d1y * rx
+    side_q1 = d1x * (q1y - p0y) - d1y * (q1x - p0x)
+    side_p0 = d2x * (-ry) - d2y * (-rx)
+    side_p1 = d2x * (p1y - q0y) - d2y * (p1x - q0x)
     crossing = (side_q0 * side_q1 < 0.0) & (side_p0 * side_p1 < 0.0)
     safe = np.where(crossing, denom, 1.0)
-    s = np.where(crossing, _cross(r, d2) / safe, s)
-    t = np.where(crossing, _cross(r, d1) / safe, t)
+    s = np.where(crossing, (rx * d2y - ry * d2x) / safe, s)
+    t = np.where(crossing, (rx * d1y - ry * d1x) / safe, t)
     dist = np.where(crossing, 0.0, dist)
     return dist, s, t
 
@@ -159,7 +186,7 @@ def pair_clearance(
     It is exact wherever the closest points are unique and the distance is positive.
     """
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    combos = np.array(instrument.capsule_pairs, dtype=np.int64).reshape(-1, 2)
+    on_alpha, _, _, combos, combo_radii = _capsule_tables(instrument)
     start, end = capsule_segments(instrument, base_xy, orient, joints)
     ii, jj = pairs[:, 0], pairs[:, 1]
     ca, cb = combos[:, 0], combos[:, 1]
@@ -169,7 +196,7 @@ def pair_clearance(
     q0 = start[..., jj[:, None], cb[None, :], :]
     q1 = end[..., jj[:, None], cb[None, :], :]
     dist, s, t = segment_distance(p0, p1, q0, q1)
-    clearance = dist - _combo_radii(instrument)
+    clearance = dist - combo_radii
     if not gradient:
         return PairClearance(clearance=clearance, distance=dist)
     if joints.ndim != 2:
@@ -181,7 +208,7 @@ def pair_clearance(
     elbow = base_xy + instrument.alpha_arm_mm * np.stack(
         [np.cos(joints[:, 0] + orient), np.sin(joints[:, 0] + orient)], axis=-1
     )
-    on_beta = np.array([c.arm == "beta" for c in instrument.capsules])
+    on_beta = ~on_alpha
     grad_i = np.empty((*dist.shape, 2))
     grad_j = np.empty((*dist.shape, 2))
     grad_i[..., 0] = np.einsum("pki,pki->pk", normal, _perp(xi - base_xy[ii][:, None, :]))
@@ -189,13 +216,6 @@ def pair_clearance(
     grad_j[..., 0] = -np.einsum("pki,pki->pk", normal, _perp(xj - base_xy[jj][:, None, :]))
     grad_j[..., 1] = -np.einsum("pki,pki->pk", normal, _perp(xj - elbow[jj][:, None, :])) * on_beta[cb][None, :]
     return PairClearance(clearance=clearance, distance=dist, grad_i=grad_i, grad_j=grad_j)
-
-
-def _combo_radii(instrument: Instrument) -> np.ndarray:
-    """Sum of radii of each same-layer capsule combination, shape ``(K,)``."""
-    radii = np.array([c.radius_mm for c in instrument.capsules])
-    combos = np.array(instrument.capsule_pairs, dtype=np.int64).reshape(-1, 2)
-    return radii[combos[:, 0]] + radii[combos[:, 1]]
 
 
 def clearance_between(
@@ -212,12 +232,12 @@ def clearance_between(
     The same quantity as :func:`pair_clearance`, for explicit configurations of each pair
     (the verifier uses it to probe instants between samples).
     """
-    combos = np.array(instrument.capsule_pairs, dtype=np.int64).reshape(-1, 2)
+    _, _, _, combos, combo_radii = _capsule_tables(instrument)
     start_i, end_i = capsule_segments(instrument, base_i, orient_i, joints_i)
     start_j, end_j = capsule_segments(instrument, base_j, orient_j, joints_j)
     ca, cb = combos[:, 0], combos[:, 1]
     dist, _, _ = segment_distance(start_i[:, ca], end_i[:, ca], start_j[:, cb], end_j[:, cb])
-    return dist - _combo_radii(instrument)
+    return dist - combo_radii
 
 
 def min_pair_clearance(

@@ -319,23 +319,28 @@ class _SafetyLayer:
         ``subdivisions`` equal pieces with exact clearances at their ends.
         """
         i, j = pairs[:, 0], pairs[:, 1]
-        motion_i = np.abs(q_next[i] - q[i]) @ self.rho
-        motion_j = np.abs(q_next[j] - q[j]) @ self.rho
-        bound = motion_i + motion_j
+        return self.unsafe_rows(pairs, q[i], q[j], q_next[i], q_next[j], c0, floor)
+
+    def unsafe_rows(
+        self, pairs: np.ndarray, qi: np.ndarray, qj: np.ndarray, qi_next: np.ndarray, qj_next: np.ndarray,
+        c0: np.ndarray, floor: np.ndarray,
+    ) -> np.ndarray:
+        """:meth:`unsafe` with the pair's configurations given row by row (so that several
+        trial steps of the same pairs are checked in one vectorised call)."""
+        bound = np.abs(qi_next - qi) @ self.rho + np.abs(qj_next - qj) @ self.rho
         f = np.minimum(floor, c0)
-        c1 = self._between(pairs, q_next[i], q_next[j])
+        c1 = self._between(pairs, qi_next, qj_next)
         bad = c1 < f
         coarse = ~bad & (0.5 * (c0 + c1 - bound) < 0.5 * f)
         rows = np.flatnonzero(coarse)
         if len(rows):
             n_sub = self.subdivisions
             pr = pairs[rows]
-            ii, jj = pr[:, 0], pr[:, 1]
             t = np.arange(1, n_sub) / n_sub
-            qi = q[ii][None] + t[:, None, None] * (q_next[ii] - q[ii])[None]
-            qj = q[jj][None] + t[:, None, None] * (q_next[jj] - q[jj])[None]
+            qi_mid = qi[rows][None] + t[:, None, None] * (qi_next[rows] - qi[rows])[None]
+            qj_mid = qj[rows][None] + t[:, None, None] * (qj_next[rows] - qj[rows])[None]
             m = len(rows)
-            c_mid = self._between(np.tile(pr, (n_sub - 1, 1)), qi.reshape(-1, 2), qj.reshape(-1, 2)).reshape(n_sub - 1, m)
+            c_mid = self._between(np.tile(pr, (n_sub - 1, 1)), qi_mid.reshape(-1, 2), qj_mid.reshape(-1, 2)).reshape(n_sub - 1, m)
             c_all = np.vstack([c0[rows][None], c_mid, c1[rows][None]])
             lower = 0.5 * (c_all[:-1] + c_all[1:] - bound[rows] / n_sub)
             bad[rows] = np.any(lower < 0.5 * f[rows], axis=0) | np.any(c_mid < f[rows], axis=0)
@@ -375,12 +380,20 @@ class _SafetyLayer:
             hi = np.where(i_first, i, j)
             lo = np.where(i_first, j, i)
             moving = np.any(q_next != q, axis=1)
+            # Two trial steps per pair, checked in one call: (a) the lower-priority one stopped,
+            # (b) the higher-priority one stopped.
             q_a = q_next.copy()
             q_a[lo] = q[lo]
             q_b = q_next.copy()
             q_b[hi] = q[hi]
-            ok_a = moving[lo] & ~self.unsafe(bp, q, q_a, c0b, fb)
-            ok_b = moving[hi] & ~ok_a & ~self.unsafe(bp, q, q_b, c0b, fb)
+            pp = np.concatenate([bp, bp])
+            trial_bad = self.unsafe_rows(
+                pp, np.concatenate([q[i], q[i]]), np.concatenate([q[j], q[j]]),
+                np.concatenate([q_a[i], q_b[i]]), np.concatenate([q_a[j], q_b[j]]),
+                np.concatenate([c0b, c0b]), np.concatenate([fb, fb]),
+            )
+            ok_a = moving[lo] & ~trial_bad[: len(bp)]
+            ok_b = moving[hi] & ~ok_a & ~trial_bad[len(bp):]
             both = ~ok_a & ~ok_b
             stop = np.unique(np.concatenate([lo[ok_a], hi[ok_b], lo[both], hi[both]]))
             stop = stop[moving[stop]]

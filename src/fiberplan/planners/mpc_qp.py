@@ -123,6 +123,7 @@ class QpLayout:
                 cols.append(int(self.iv[k, d]))
                 vals.append(-2 * w.input_change)
         self.P = sp.csc_matrix((vals, (rows, cols)), shape=(self.n_var, self.n_var))
+        self.P_upper = sp.triu(self.P, format="csc")  # what OSQP takes; shared by every workspace
 
         # --- constraints.
         entries: list[tuple[int, int, float]] = []
@@ -251,9 +252,8 @@ class PositionerQP:
 
         self.layout = layout
         self._solver = osqp.OSQP()
-        P_upper = sp.triu(layout.P, format="csc")
         self._solver.setup(
-            P_upper,
+            layout.P_upper,
             np.zeros(layout.n_var),
             layout.A.copy(),
             layout.l0,
