@@ -222,10 +222,10 @@ def test_qpsolvers_backend_clarabel():
 def test_forced_osqp_failures_keep_the_plan_safe(monkeypatch):
     from fiberplan.planners import mpc_qp
 
-    def failing_solve(self, data):
+    def failing_solve(self, q, lo, hi, ax):
         return STATUS_FAILED, None, 0
 
-    monkeypatch.setattr(mpc_qp.PositionerQP, "solve", failing_solve)
+    monkeypatch.setattr(mpc_qp.PositionerQP, "solve_assembled", failing_solve)
     scenario = make_scenario("desi", 19, "random", 1)
     result = plan(scenario, "mpc", {"max_duration_factor": 2.0})
     _check_safe(result)

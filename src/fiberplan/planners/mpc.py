@@ -682,6 +682,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         "qp_failures": counters.qp_failures,
         "qp_workspaces": counters.workspaces,
         "qp_fraction": counters.qp_solves / max(1, n * n_steps),
+        # Per QP: OSQP's update + solve (the vectors are assembled for the whole batch before).
         "qp_solve_ms_median": float(np.median(all_times) * 1e3) if len(all_times) else 0.0,
         "qp_solve_ms_p95": float(np.percentile(all_times, 95) * 1e3) if len(all_times) else 0.0,
         "qp_iterations_median": float(np.median(all_iters)) if len(all_iters) else 0.0,

@@ -25,7 +25,7 @@ from fiberplan.planners.mpc_qp import (
     PositionerQP,
     QpData,
     QpLayout,
-    timed_solve,
+    solve_with_qpsolvers,
 )
 
 
@@ -95,16 +95,25 @@ class _Block:
         iterations = np.zeros(m, dtype=np.int64)
         solve_s = np.zeros(m)
         created = 0
+        osqp = self.qp_solver == "osqp"
+        if osqp and m:  # the whole batch's vectors in a few numpy operations
+            q, lo, hi, ax = self.layout.assemble_batch(
+                batch.z_ref, batch.z_lo, batch.z_hi, batch.v_prev, batch.coef, batch.rhs, batch.active, batch.slack_linear
+            )
         for r in range(m):
-            workspace = None
-            if self.qp_solver == "osqp":
+            if osqp:
                 key = int(batch.index[r])
                 workspace = self.workspaces.get(key)
                 if workspace is None:
                     workspace = PositionerQP(self.layout, self.options)
                     self.workspaces[key] = workspace
                     created += 1
-            st, x, it, dt = timed_solve(self.layout, workspace, batch.data(r), self.qp_solver)
+                t0 = time.perf_counter()
+                st, x, it = workspace.solve_assembled(q[r], lo[r], hi[r], ax[r])
+            else:
+                t0 = time.perf_counter()
+                st, x, it = solve_with_qpsolvers(self.layout, batch.data(r), self.qp_solver)
+            dt = time.perf_counter() - t0
             status[r], iterations[r], solve_s[r] = st, it, dt
             if x is not None and st != STATUS_FAILED:
                 zz, _, ss = self.layout.split(x)

@@ -28,7 +28,6 @@ warm-starts it; :func:`solve_with_qpsolvers` routes the same matrices through qp
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -202,22 +201,36 @@ class QpLayout:
 
     def assemble(self, data: QpData) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Vectors ``q, l, u`` and the data array of ``A`` for one step (a few numpy operations)."""
+        one = self.assemble_batch(
+            data.z_ref[None], data.z_lo[None], data.z_hi[None], data.v_prev[None],
+            data.coef[None], data.rhs[None], data.active[None], data.slack_linear[None],
+        )
+        q, lo, hi, ax = (a[0] for a in one)
+        return q, lo, hi, ax
+
+    def assemble_batch(
+        self, z_ref: np.ndarray, z_lo: np.ndarray, z_hi: np.ndarray, v_prev: np.ndarray,
+        coef: np.ndarray, rhs: np.ndarray, active: np.ndarray, slack_linear: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`assemble` for ``m`` positioners at once: the :class:`QpData` fields with a
+        leading ``m`` axis in, ``(m, n_var)``, ``(m, n_con)`` twice and ``(m, nnz)`` out."""
         w = self.weights
-        q = np.zeros(self.n_var)
-        q[self.iz[:-1]] = -2 * w.tracking * data.z_ref[:-1]
-        q[self.iz[-1]] = -2 * w.terminal * data.z_ref[-1]
-        q[self.iv[0]] = -2 * w.input_change * data.v_prev
-        q[self.isl] = data.slack_linear[:, None]
-        lo = self.l0.copy()
-        hi = self.u0.copy()
-        lo[self.row_z] = data.z_lo
-        hi[self.row_z] = data.z_hi
+        m = len(z_ref)
+        q = np.zeros((m, self.n_var))
+        q[:, self.iz[:-1]] = -2 * w.tracking * z_ref[:, :-1]
+        q[:, self.iz[-1]] = -2 * w.terminal * z_ref[:, -1]
+        q[:, self.iv[0]] = -2 * w.input_change * v_prev
+        q[:, self.isl] = slack_linear[:, :, None]
+        lo = np.tile(self.l0, (m, 1))
+        hi = np.tile(self.u0, (m, 1))
+        lo[:, self.row_z] = z_lo[:, None, :]
+        hi[:, self.row_z] = z_hi[:, None, :]
         if self.row_dv is not None:
-            lo[self.row_dv[0]] += data.v_prev
-            hi[self.row_dv[0]] += data.v_prev
-        lo[self.row_collision] = np.where(data.active[:, None], data.rhs, -_INF)
-        ax = self.A_data0.copy()
-        ax[self.ax_collision] = np.where(data.active[:, None, None], data.coef, 0.0)
+            lo[:, self.row_dv[0]] += v_prev
+            hi[:, self.row_dv[0]] += v_prev
+        lo[:, self.row_collision] = np.where(active[:, :, None], rhs, -_INF)
+        ax = np.tile(self.A_data0, (m, 1))
+        ax[:, self.ax_collision] = np.where(active[:, :, None, None], coef, 0.0)
         return q, lo, hi, ax
 
     def dense(self, data: QpData) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -279,7 +292,10 @@ class PositionerQP:
 
     def solve(self, data: QpData) -> tuple[int, np.ndarray | None, int]:
         """Update the workspace and solve; returns ``(status, x or None, iterations)``."""
-        q, lo, hi, ax = self.layout.assemble(data)
+        return self.solve_assembled(*self.layout.assemble(data))
+
+    def solve_assembled(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, ax: np.ndarray) -> tuple[int, np.ndarray | None, int]:
+        """:meth:`solve` with the step's vectors already assembled (:meth:`QpLayout.assemble_batch`)."""
         if self._ext is None:
             self._solver.update(q=q, l=lo, u=hi, Ax=ax)
             res = self._solver.solve(raise_error=False)
@@ -322,14 +338,3 @@ def solve_with_qpsolvers(layout: QpLayout, data: QpData, solver: str) -> tuple[i
         return STATUS_FAILED, None, 0
     return STATUS_SOLVED, np.asarray(x), 0
 
-
-def timed_solve(
-    layout: QpLayout, workspace: PositionerQP | None, data: QpData, qp_solver: str
-) -> tuple[int, np.ndarray | None, int, float]:
-    """Solve with the workspace (OSQP) or a qpsolvers backend; also returns the wall time (s)."""
-    t0 = time.perf_counter()
-    if workspace is not None:
-        status, x, iters = workspace.solve(data)
-    else:
-        status, x, iters = solve_with_qpsolvers(layout, data, qp_solver)
-    return status, x, iters, time.perf_counter() - t0
