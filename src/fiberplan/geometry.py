@@ -187,6 +187,10 @@ def pair_clearance(
     """
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     on_alpha, _, _, combos, combo_radii = _capsule_tables(instrument)
+    used, inverse = np.unique(pairs, return_inverse=True)
+    if len(used) < joints.shape[-2]:  # capsules of the positioners the pairs name, only
+        base_xy, orient, joints = base_xy[used], orient[used], joints[..., used, :]
+        pairs = inverse.reshape(pairs.shape)
     start, end = capsule_segments(instrument, base_xy, orient, joints)
     ii, jj = pairs[:, 0], pairs[:, 1]
     ca, cb = combos[:, 0], combos[:, 1]
