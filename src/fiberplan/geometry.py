@@ -237,8 +237,11 @@ def clearance_between(
     (the verifier uses it to probe instants between samples).
     """
     _, _, _, combos, combo_radii = _capsule_tables(instrument)
-    start_i, end_i = capsule_segments(instrument, base_i, orient_i, joints_i)
-    start_j, end_j = capsule_segments(instrument, base_j, orient_j, joints_j)
+    m = len(joints_i)
+    start, end = capsule_segments(  # both sides in one call: these arrays are small
+        instrument, np.concatenate([base_i, base_j]), np.concatenate([orient_i, orient_j]), np.concatenate([joints_i, joints_j])
+    )
+    start_i, end_i, start_j, end_j = start[:m], end[:m], start[m:], end[m:]
     ca, cb = combos[:, 0], combos[:, 1]
     dist, _, _ = segment_distance(start_i[:, ca], end_i[:, ca], start_j[:, cb], end_j[:, cb])
     return dist - combo_radii

@@ -362,10 +362,14 @@ class _SafetyLayer:
         if len(pairs) == 0:
             return q_next, held, 0
         i_all, j_all = pairs[:, 0], pairs[:, 1]
+        recheck = np.ones(len(pairs), dtype=bool)
         while True:
             motion = np.abs(q_next - q) @ self.rho
             bound = motion[i_all] + motion[j_all]
-            idx = np.flatnonzero((bound > 0) & (c_now - bound < self.pair_floor + 1e-9))
+            # Only pairs with a positioner stopped in the last round can have changed (every
+            # unsafe pair had one of its positioners stopped; the others were safe and are as
+            # they were), so later rounds re-check those alone.
+            idx = np.flatnonzero(recheck & (bound > 0) & (c_now - bound < self.pair_floor + 1e-9))
             if len(idx) == 0:
                 break
             bad = self.unsafe(pairs[idx], q, q_next, c_now[idx], self.pair_floor[idx])
@@ -401,6 +405,9 @@ class _SafetyLayer:
                 raise PlannerError("mpc: safety layer found an unsafe pair with both positioners still")
             q_next[stop] = q[stop]
             held[stop] = True
+            stopped_now = np.zeros(len(q), dtype=bool)
+            stopped_now[stop] = True
+            recheck = stopped_now[i_all] | stopped_now[j_all]
         return q_next, held, iterations
 
 
