@@ -5,7 +5,8 @@ For each instrument and group size, runs ``central``, ``mpc`` and ``dnf`` on the
 ``benchmarks/results/central_<instrument>_<n>.json`` with machine info, versions, date,
 parameters, per-planner aggregates (success, makespan gap to central: median and 90th
 percentile, energy gap at equal makespan, plan wall times) and every row. The file is
-rewritten after each seed, so an interrupted run keeps what it measured (``seeds_done``).
+rewritten after each seed, so an interrupted run keeps what it measured (``seeds_done``);
+``--resume`` continues such a file (same parameters) with the seeds it lacks.
 
 Usage::
 
@@ -43,21 +44,48 @@ def _clean(value: Any) -> Any:
     return value
 
 
+def _previous(out: Path, instrument: str, n: int, planners: list[str], energy_gap: bool, central: dict[str, Any]) -> dict[str, Any] | None:
+    """The result file to continue, or None; refuses one measured with other parameters."""
+    if not out.exists():
+        return None
+    prev = json.loads(out.read_text())
+    par = prev["parameters"]
+    mine = {"instrument": instrument, "n_positioners": n, "planners": planners, "energy_gap": energy_gap, "central_overrides": central}
+    theirs = {k: par.get(k) for k in mine}
+    if theirs != _clean(mine):
+        raise SystemExit(f"--resume: {out} was measured with {theirs}, not {mine}; move it away or drop --resume")
+    return prev
+
+
 def run_one(
     instrument: str, n: int, seeds: list[int], planners: list[str], energy_gap: bool, budget_s: float, out: Path,
-    central: dict[str, Any],
+    central: dict[str, Any], resume: bool = False,
 ) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
     started = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     t0 = time.perf_counter()
     done: list[int] = []
+    sessions: list[dict[str, Any]] = []
+    elapsed_before = 0.0
+    prev = _previous(out, instrument, n, planners, energy_gap, central) if resume else None
+    if prev is not None:
+        rows = list(prev["rows"])
+        done = list(prev["parameters"]["seeds_done"])
+        elapsed_before = float(prev.get("elapsed_s", 0.0))
+        sessions = prev.get("sessions") or [{"date_utc": prev["date_utc"], "seeds": list(done), "elapsed_s": elapsed_before}]
+        started = prev["date_utc"]
+    session = {"date_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), "seeds": [], "elapsed_s": 0.0}
     payload: dict[str, Any] = {}
     for seed in seeds:
+        if seed in done:
+            continue
         if time.perf_counter() - t0 > budget_s:
             break
         result = run_compare(instrument, n, planners, [seed], kind=HARD_KIND, energy_gap=energy_gap, settings={"central": central})
         rows.extend(result.rows)
         done.append(seed)
+        session["seeds"].append(seed)
+        session["elapsed_s"] = time.perf_counter() - t0
         payload = {
             "benchmark": "bench_central",
             "date_utc": started,
@@ -66,15 +94,16 @@ def run_one(
                 "instrument": instrument,
                 "n_positioners": n,
                 "scenario_kind": HARD_KIND,
-                "seeds_requested": seeds,
-                "seeds_done": done,
+                "seeds_requested": sorted(set(seeds) | set(done)),
+                "seeds_done": sorted(done),
                 "planners": planners,
                 "energy_gap": energy_gap,
                 "time_budget_s": budget_s,
                 "planner_settings": "defaults, except central overrides below; central also warm-starts from the other planners' results",
                 "central_overrides": central,
             },
-            "elapsed_s": time.perf_counter() - t0,
+            "elapsed_s": elapsed_before + time.perf_counter() - t0,
+            "sessions": [*sessions, session] if prev is not None else [session],
             "aggregates": aggregate(rows),
             "rows": rows,
         }
@@ -120,6 +149,10 @@ def main() -> None:
     parser.add_argument("--budget-s", type=float, default=3600.0, help="stop starting new seeds after this many seconds per group")
     parser.add_argument("--results", type=Path, default=RESULTS)
     parser.add_argument("--central-set", nargs="*", default=[], metavar="KEY=VALUE", help="central setting overrides (JSON values)")
+    parser.add_argument(
+        "--resume", action="store_true",
+        help="continue the existing result file (same parameters): keep its rows, run the seeds it lacks",
+    )
     parser.add_argument("--table", action="store_true", help="print the markdown gap table of the result files and exit")
     args = parser.parse_args()
     if args.table:
@@ -136,7 +169,7 @@ def main() -> None:
     for instrument in args.instrument:
         for n in args.positioners:
             out = args.results / f"central_{instrument}_{n}.json"
-            run_one(instrument, n, list(range(args.seeds)), planners, not args.no_energy_gap, args.budget_s, out, central)
+            run_one(instrument, n, list(range(args.seeds)), planners, not args.no_energy_gap, args.budget_s, out, central, args.resume)
 
 
 if __name__ == "__main__":
