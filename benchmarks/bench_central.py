@@ -20,6 +20,7 @@ import argparse
 import datetime as _dt
 import json
 import math
+import statistics
 import time
 from pathlib import Path
 from typing import Any
@@ -136,6 +137,29 @@ def table(results_dir: Path) -> str:
                 f"{_fmt(gap['p90'], '+.1%')} | {gap['n']} | {_fmt(egap['median'], '+.1%')} | {_fmt(egap['p90'], '+.1%')} | "
                 f"{_fmt(wall['median'], '.2f')} | {_fmt(wall['max'], '.1f')} |"
             )
+    lines += [
+        "",
+        "Paired, on the seeds where both decentralised planners are clean (same instances):",
+        "",
+        "| instrument | N | seeds (both clean) | mpc gap median | dnf gap median | mpc smaller gap | dnf smaller gap |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for path in sorted(results_dir.glob("central_*.json")):
+        data = json.loads(path.read_text())
+        par = data["parameters"]
+        by_seed: dict[int, dict[str, Any]] = {}
+        for row in data["rows"]:
+            by_seed.setdefault(row["seed"], {})[row["planner"]] = row
+        both = [v for v in by_seed.values() if all(v.get(p, {}).get("gap_to_central") is not None for p in ("mpc", "dnf"))]
+        if not both:
+            continue
+        g_mpc = [v["mpc"]["gap_to_central"] for v in both]
+        g_dnf = [v["dnf"]["gap_to_central"] for v in both]
+        lines.append(
+            f"| {par['instrument']} | {par['n_positioners']} | {len(both)} | {statistics.median(g_mpc):+.1%} | "
+            f"{statistics.median(g_dnf):+.1%} | {sum(a < b for a, b in zip(g_mpc, g_dnf, strict=True))} | "
+            f"{sum(b < a for a, b in zip(g_mpc, g_dnf, strict=True))} |"
+        )
     return "\n".join(lines)
 
 
