@@ -38,6 +38,7 @@ Study file layout::
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import itertools
 import json
@@ -184,7 +185,7 @@ def expand_grid(data: Mapping[str, Any], origin: str = "study") -> list[Task]:
     for planner in planners:
         table = dict(settings_tables.get(planner, {}))
         settings_cls = settings_class(planner)
-        known = set(settings_cls.__dataclass_fields__)
+        known = {f.name for f in dataclasses.fields(settings_cls)}
         unknown = sorted(set(table) - known)
         if unknown:
             raise StudyError(f"{origin}: planner {planner!r} has no setting {unknown[0]!r}; its settings are {', '.join(sorted(known))}")

@@ -533,16 +533,16 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
                 hit = new_dead[pairs[:, 0]] | new_dead[pairs[:, 1]]
                 for r in np.flatnonzero(hit & (c_now < settings.conflict_radius_mm)):
                     a, b = int(pairs[r, 0]), int(pairs[r, 1])
-                    for first, waiter in ((a, b), (b, a)):
-                        if wait_first[first] >= 0 or wait_first[waiter] >= 0 or at_goal_final[first]:
+                    for leader, waiter in ((a, b), (b, a)):
+                        if wait_first[leader] >= 0 or wait_first[waiter] >= 0 or at_goal_final[leader]:
                             continue
-                        wq = waiting_configuration(scenario, first, waiter, q, datum, step_rad, settings.margin_mm)
+                        wq = waiting_configuration(scenario, leader, waiter, q, datum, step_rad, settings.margin_mm)
                         if wq is not None:
-                            wait_first[waiter] = first
+                            wait_first[waiter] = leader
                             wait_q[waiter] = wq
                             level[waiter] = 0
-                            level[first] = 1
-                            level_since[first] = step
+                            level[leader] = 1
+                            level_since[leader] = step
                             n_rules += 1
                             break
             # Still stuck with top priority for two more windows: retreat sub-goals, i.e. fold
