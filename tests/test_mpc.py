@@ -85,12 +85,20 @@ def test_defaults_scale_with_the_instrument():
         ({"max_input_change": 0.0}, "max_input_change"),
         ({"stop_after_stalled_windows": -1}, "stop_after_stalled_windows"),
         ({"deadlock_progress_fraction": 1.5}, "deadlock_progress_fraction"),
+        ({"osqp_eps": "nan"}, "'osqp_eps' must be a number, found 'nan'"),
+        ({"wait_rules": 1}, "'wait_rules' must be true or false"),
     ],
 )
 def test_bad_settings_are_rejected(override, match):
     scenario = make_scenario("desi", 7, "random", 1)
     with pytest.raises(PlannerError, match=match):
         make_settings("mpc", scenario, override)
+
+
+def test_numpy_scalars_are_accepted_as_settings():
+    overrides = {"horizon_steps": np.int64(3), "osqp_eps": np.float32(1e-3), "wait_rules": np.bool_(False)}
+    settings = make_settings("mpc", make_scenario("desi", 7, "random", 1), overrides)
+    assert settings.horizon_steps == 3 and settings.wait_rules == False  # noqa: E712 - np.bool_
 
 
 def test_straight_path_saturates_and_stops_at_goal():

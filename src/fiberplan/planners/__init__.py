@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import numbers
 import time
 from collections.abc import Callable, Mapping
 from typing import Any, Protocol
+
+import numpy as np
 
 from fiberplan.errors import PlannerError
 from fiberplan.scenario import Scenario
@@ -69,6 +72,14 @@ def make_settings(name: str, scenario: Scenario, overrides: Mapping[str, Any] | 
     unknown = sorted(set(overrides) - set(known))
     if unknown:
         raise PlannerError(f"planner {name!r} has no setting {unknown[0]!r}; its settings are {', '.join(sorted(known))}")
+    for key, value in overrides.items():
+        default = getattr(defaults, key)
+        is_bool = isinstance(value, (bool, np.bool_))
+        is_number = isinstance(value, numbers.Real) and not is_bool  # numpy scalars included
+        if isinstance(default, bool) and not is_bool:
+            raise PlannerError(f"planner {name!r}: setting {key!r} must be true or false, found {value!r}")
+        if isinstance(default, (int, float)) and not isinstance(default, bool) and not is_number:
+            raise PlannerError(f"planner {name!r}: setting {key!r} must be a number, found {value!r}")
     try:
         return dataclasses.replace(defaults, **overrides)
     except (TypeError, ValueError) as e:
