@@ -44,6 +44,7 @@ from fiberplan.geometry import clearance_between, pair_clearance
 from fiberplan.instrument import Instrument
 from fiberplan.kinematics import fiber_positions
 from fiberplan.planners import ProgressCallback
+from fiberplan.planners.mpc_detour import PairResolution, detour_route, pair_resolution
 from fiberplan.planners.mpc_exec import QpBatch, make_executor
 from fiberplan.planners.mpc_qp import STATUS_FAILED, STATUS_INACCURATE, STATUS_SOLVED, OsqpOptions, QpLayout, QpWeights
 from fiberplan.scenario import Scenario
@@ -82,6 +83,11 @@ class MpcSettings:
             has made no progress for this many deadlock windows (0: never).
         wait_rules: resolve a deadlocked pair whose targets impose an order by sending the
             one that must wait to a waiting configuration (:func:`waiting_configuration`).
+        detours: a positioner deadlocked a second time, or still stuck two windows after it
+            was first, gets a detour route around its neighbours (``mpc_detour.detour_route``)
+            before it retreats.
+        detour_max: detour routes planned per positioner at most.
+        detour_after_deadlocks: a positioner found deadlocked this many times gets a detour.
         executor: ``sequential`` or ``parallel``.
         workers: processes of the parallel executor (the planning process counts as one).
         qp_solver: ``osqp`` (persistent workspaces, the fast path) or a qpsolvers backend name.
@@ -110,6 +116,9 @@ class MpcSettings:
     max_duration_extra_s: float = 1.0
     stop_after_stalled_windows: int = 8
     wait_rules: bool = True
+    detours: bool = True
+    detour_max: int = 3
+    detour_after_deadlocks: int = 2
     executor: str = "sequential"
     workers: int = 2
     qp_solver: str = "osqp"
@@ -167,7 +176,8 @@ class MpcSettings:
             raise PlannerError(f"mpc: stop_after_stalled_windows must be an integer >= 0, found {self.stop_after_stalled_windows}")
         for name, value in (("horizon_steps", self.horizon_steps), ("deadlock_window_steps", self.deadlock_window_steps),
                             ("workers", self.workers), ("osqp_max_iter", self.osqp_max_iter),
-                            ("max_neighbour_constraints", self.max_neighbour_constraints)):
+                            ("max_neighbour_constraints", self.max_neighbour_constraints), ("detour_max", self.detour_max),
+                            ("detour_after_deadlocks", self.detour_after_deadlocks)):
             if int(value) != value or value < 1:
                 raise PlannerError(f"mpc: {name} must be an integer >= 1, found {value}")
         if self.deadlock_progress_fraction >= 1:
@@ -431,6 +441,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     wait_first = np.full(n, -1, dtype=np.int64)
     wait_q = np.zeros((n, 2))
     first_arrived = np.zeros(n, dtype=bool)
+    leader_home_since = np.zeros(n, dtype=np.int64)
     n_rules = 0
 
     weights = QpWeights(
@@ -480,6 +491,16 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     best_ever = move.copy()  # best time-to-go ever (not reset by retreats)
     last_best_ever = np.zeros(n, dtype=np.int64)
     progress_eps = settings.deadlock_progress_fraction * window * h
+    # Detour routes: positioner -> waypoints, and the index of the waypoint it heads for.
+    n_dead = np.zeros(n, dtype=np.int64)
+    routes: dict[int, np.ndarray] = {}
+    route_pos: dict[int, int] = {}
+    n_routes = np.zeros(n, dtype=np.int64)
+    n_detour_failed = 0
+    n_pair_resolutions = 0
+    grids: dict = {}  # joint-space grids of the positioners that needed a detour (mpc_detour)
+    after_wait: dict[int, np.ndarray] = {}  # a waiter's route from its waiting place, once released
+    neighbours = [np.concatenate([pairs[pairs[:, 0] == i, 1], pairs[pairs[:, 1] == i, 0]]) for i in range(n)] if settings.detours else []
 
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
     try:
@@ -549,6 +570,43 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # the beta arm (level 2), turn alpha to the target while folded (level 3), then
             # unfold with top priority again (level 1).
             escalate = (level == 1) & stalled & (step - level_since >= 2 * window)
+            if settings.detours:
+                # Deadlocked a second time (pairs that push each other off their targets in
+                # turn), or still stuck two windows after: a waiting place for one of the pair
+                # that lets the other through, else a detour route (_resolve_blocked), before
+                # any retreat.
+                n_dead[new_dead] += 1
+                want = (new_dead & (n_dead >= settings.detour_after_deadlocks) & (level == 1)) | escalate
+                want &= (n_routes < settings.detour_max) & ((wait_first < 0) | first_arrived)
+                for b in np.flatnonzero(want).tolist():
+                    if wait_first[b] >= 0 and not first_arrived[b]:
+                        continue  # made a waiter earlier in this loop
+                    n_routes[b] += 1
+                    resolution = _resolve_blocked(scenario, settings, b, q, goal_final, neighbours, wait_first, first_arrived, step_rad, grids)
+                    if isinstance(resolution, PairResolution):
+                        f, w = resolution.first, resolution.waiter
+                        routed = [(f, resolution.first_route), (w, resolution.to_wait)]
+                        wait_first[w] = f
+                        wait_q[w] = resolution.wait_q
+                        first_arrived[w] = False
+                        after_wait[w] = resolution.from_wait
+                        level[w] = 0
+                        escalate[w] = False
+                        n_pair_resolutions += 1
+                    elif resolution is not None:
+                        routed = [(b, resolution)]
+                    else:
+                        n_detour_failed += 1
+                        continue
+                    for k, (who, route) in enumerate(routed):
+                        routes[who] = route
+                        route_pos[who] = 0
+                        if k == 0:
+                            escalate[who] = False
+                            level[who] = 1
+                            level_since[who] = step
+                            last_progress[who] = step
+                            best_ttg[who] = ttg_final[who]
             level[escalate] = 2
             level_since[escalate] = step
             counters.retreats += int(escalate.sum())
@@ -564,6 +622,14 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             last_progress[back] = step
             best_ttg[back] = ttg_final[back]
             level[(level > 0) & at_goal_final] = 0
+            for who in list(routes):
+                if level[who] >= 2:
+                    del routes[who], route_pos[who]
+                elif np.all(q[who] == routes[who][route_pos[who]]):
+                    route_pos[who] += 1  # a waypoint reached counts as progress
+                    last_progress[who] = last_best_ever[who] = step
+                    if route_pos[who] == len(routes[who]):
+                        del routes[who], route_pos[who]
 
             # Priorities: deadlocked positioners first, in the order they were first found
             # deadlocked (sticky, so two of them never swap roles); then the longest time-to-go.
@@ -597,7 +663,23 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # there until its neighbour has arrived, then moves to its target still deferring to
             # that neighbour; the rule ends when it arrives.
             has_rule = wait_first >= 0
-            first_arrived |= has_rule & at_goal_final[np.maximum(wait_first, 0)] & np.all(q == wait_q, axis=1)
+            # Released once the neighbour has arrived and the waiter is at its waiting place;
+            # a waiter of a pair resolution also when it has not got there within a window of
+            # the neighbour's arrival (blocked on its way by a third positioner).
+            leader_home = has_rule & at_goal_final[np.maximum(wait_first, 0)]
+            leader_home_since = np.where(leader_home, leader_home_since, step)
+            late = np.zeros(n, dtype=bool)
+            late[list(after_wait)] = True
+            late &= step - leader_home_since >= window
+            first_arrived |= leader_home & (np.all(q == wait_q, axis=1) | late)
+            for w in [w for w in after_wait if first_arrived[w]]:
+                route = after_wait.pop(w)
+                if np.all(q[w] == wait_q[w]):  # else the route does not start where it is
+                    routes[w] = route
+                    route_pos[w] = 0
+                else:
+                    routes.pop(w, None)
+                    route_pos.pop(w, None)
             ended = has_rule & at_goal_final
             wait_first[ended] = -1
             first_arrived[ended] = False
@@ -605,6 +687,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             goal[waiting] = wait_q[waiting]
             counters.waiting |= waiting
             goal[fold, 1] = datum[fold, 1]
+            for who in routes:
+                goal[who] = routes[who][route_pos[who]]
             goal[level == 3, 1] = datum[level == 3, 1]
 
             goal_prev = goal
@@ -703,6 +787,9 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         "yielding_positioners": int(ever_yielded.sum()),
         "waiting_rules": n_rules,
         "waiting_positioners": int(counters.waiting.sum()),
+        "detours": int(n_routes.sum()) - n_detour_failed - n_pair_resolutions,
+        "pair_resolutions": n_pair_resolutions,
+        "detours_not_found": n_detour_failed,
         "n_slots": n_slots,
         "stopped_stalled": stopped_stalled,
     }
@@ -714,6 +801,37 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         settings=dataclasses.asdict(settings),
         stats=stats,
     )
+
+
+def _resolve_blocked(
+    scenario: Scenario, settings: MpcSettings, i: int, q: np.ndarray, goal: np.ndarray, neighbours: list[np.ndarray],
+    wait_first: np.ndarray, released: np.ndarray, step_rad: np.ndarray, grids: dict,
+) -> PairResolution | np.ndarray | None:
+    """A way out for the deadlocked positioner ``i`` (``mpc_detour``), or ``None``.
+
+    First a pair resolution with its closest neighbour in conflict (``i`` first, else the
+    neighbour first): the waiter gets a way home around the first at its target, where a lone
+    detour could end on a target that blocks the neighbour (the pair would then push each other
+    off their targets in turn). Else a lone detour route around the neighbours held where they
+    are. Neighbours waiting for someone (not yet released) or waited for are left alone.
+    """
+    nb = neighbours[i]
+    leaders = set(wait_first[wait_first >= 0].tolist())
+    c_nb = clearance_between(
+        scenario.instrument, np.broadcast_to(scenario.base_xy[i], (len(nb), 2)), np.full(len(nb), scenario.orient[i]),
+        np.broadcast_to(q[i], (len(nb), 2)), scenario.base_xy[nb], scenario.orient[nb], q[nb],
+    ).min(axis=-1)
+    for k in np.argsort(c_nb, kind="stable"):
+        j = int(nb[k])
+        if c_nb[k] >= settings.conflict_radius_mm or (wait_first[j] >= 0 and not released[j]) or j in leaders:
+            continue
+        for f, w in ((i, j), (j, i)):
+            resolution = pair_resolution(scenario, f, w, q, goal, neighbours, step_rad, settings.margin_mm, settings.safety_margin_mm,
+                                         cache=grids)
+            if resolution is not None:
+                return resolution
+        break  # the closest one only
+    return detour_route(scenario, i, q[i], goal[i], nb, q[nb], step_rad, settings.margin_mm, settings.safety_margin_mm, cache=grids)
 
 
 def _build_batch(

@@ -1,0 +1,316 @@
+"""Detour routes and waiting places for deadlocked positioners of the ``mpc`` planner.
+
+Two tools, both searches over a grid of one positioner's joint configurations with its
+neighbours held still (prioritised planning, one positioner at a time):
+
+- :func:`detour_route`: a route around the neighbours for a positioner whose straight move is
+  blocked;
+- :func:`pair_resolution`: for a pair that blocks each other (typically each one's target lies
+  on the other's straight path, so they push each other off their targets in turn): a route for
+  the one that goes first, and for the other a waiting place off that route from which it can
+  still reach its own target once the first has arrived, with routes to and from it.
+
+Joint motion is counted in full-speed steps and a grid cell is ``cell_steps`` steps on each
+joint, so one grid move (axis or diagonal) takes the same time and breadth-first search finds
+time-shortest routes on the grid. A cell is free when its clearance is at least ``clear_mm``
+plus half the motion bound of a diagonal move, so the clearance along every grid move is at
+least ``clear_mm`` (half the sum of the end clearances minus the motion bound, the bound the
+safety layer uses). See ``formulations/mpc.md`` (Deadlocks).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+
+from fiberplan.geometry import _capsule_tables, _point_to_segment, capsule_segments, clearance_between, segment_distance
+from fiberplan.scenario import Scenario
+
+__all__ = ["PairResolution", "detour_route", "pair_resolution"]
+
+
+def _clearance_to(scenario: Scenario, i: int, configs: np.ndarray, others: np.ndarray, q_others: np.ndarray) -> np.ndarray:
+    """Smallest clearance of positioner ``i`` at each of ``configs`` (K, 2) to ``others`` held at ``q_others``."""
+    k, m = len(configs), len(others)
+    if m == 0:
+        return np.full(k, np.inf)
+    c = clearance_between(
+        scenario.instrument,
+        np.broadcast_to(scenario.base_xy[i], (k * m, 2)), np.full(k * m, scenario.orient[i]), np.repeat(configs, m, axis=0),
+        scenario.base_xy[np.tile(others, k)], scenario.orient[np.tile(others, k)], np.tile(q_others, (k, 1)),
+    ).min(axis=-1)
+    return c.reshape(k, m).min(axis=1)
+
+
+def _densify(waypoints: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """Points along the straight joint-space segments between ``waypoints``, at most ``spacing`` apart per joint."""
+    pts = [waypoints[:1]]
+    for a, b in itertools.pairwise(waypoints):
+        n = int(np.ceil(np.max(np.abs(b - a) / spacing, initial=0.0)))
+        if n:
+            t = np.arange(1, n + 1)[:, None] / n
+            pts.append(a + t * (b - a))
+    return np.concatenate(pts)
+
+
+class _Grid:
+    """The joint-configuration grid of one positioner, covering its hard stops, with its capsules
+    placed at every cell once."""
+
+    def __init__(self, scenario: Scenario, i: int, step_rad: np.ndarray, clear_mm: float, end_clear_mm: float,
+                 cell_steps: float = 2.0, end_cells: int = 3) -> None:
+        inst = scenario.instrument
+        self.scenario, self.i, self.step_rad = scenario, i, step_rad
+        self.lo = inst.limits_rad[:, 0]
+        self.cell = cell_steps * step_rad
+        rho = np.array([inst.alpha_point_extent_mm, inst.beta_point_extent_mm])
+        self.threshold = clear_mm + 0.5 * float(rho @ self.cell)
+        self.end_clear_mm, self.end_cells = end_clear_mm, end_cells
+        span = inst.limits_rad[:, 1] - self.lo
+        self.shape = tuple(int(np.floor(span[k] / self.cell[k])) + 1 for k in range(2))
+        axes = [self.lo[k] + np.arange(self.shape[k]) * self.cell[k] for k in range(2)]
+        self.configs = np.stack(np.meshgrid(axes[0], axes[1], indexing="ij"), axis=-1).reshape(-1, 2)
+        start, end = capsule_segments(inst, scenario.base_xy[[i]], scenario.orient[[i]], self.configs[:, None, :])
+        self.seg_start, self.seg_end = start[:, 0], end[:, 0]  # (cells, C, 2)
+        self._memo: dict[tuple[int, float, float, float], np.ndarray] = {}  # (j, q_j, cutoff) -> clearances
+        ca = _capsule_tables(inst)[3][:, 0]
+        a = self.seg_start[:, ca]  # (cells, K, 2): i's capsule of each same-layer combination
+        d = self.seg_end[:, ca] - a
+        dd = d[..., 0] ** 2 + d[..., 1] ** 2
+        self._lb_tables = (a, d, dd > 0, np.where(dd > 0, dd, 1.0))
+
+    def clearance(self, others: np.ndarray, q_others: np.ndarray, cutoff: float) -> np.ndarray:
+        """Clearance of every cell to ``others`` held at ``q_others``, exact where below ``cutoff``
+        (elsewhere a lower bound at least ``cutoff``); one array per obstacle configuration is
+        kept, as the same neighbours are met again at the same places."""
+        out = np.full(len(self.configs), np.inf)
+        if len(others) == 0:
+            return out.reshape(self.shape)
+        keys = [(int(j), float(qj[0]), float(qj[1]), float(cutoff)) for j, qj in zip(others, q_others, strict=True)]
+        todo = [k for k, key in enumerate(keys) if key not in self._memo]
+        if todo:
+            if len(self._memo) + len(todo) > 256:
+                self._memo.clear()
+            for k, c in zip(todo, self._clearance_each(others[todo], q_others[todo], cutoff), strict=True):
+                self._memo[keys[k]] = c
+        for key in keys:
+            out = np.minimum(out, self._memo[key])
+        return out.reshape(self.shape)
+
+    def _clearance_each(self, others: np.ndarray, q_others: np.ndarray, cutoff: float) -> list[np.ndarray]:
+        inst = self.scenario.instrument
+        _, _, _, combos, radii = _capsule_tables(inst)
+        ca, cb = combos[:, 0], combos[:, 1]
+        res = []
+        o_start, o_end = capsule_segments(inst, self.scenario.base_xy[others], self.scenario.orient[others], q_others)
+        a, d, nz, safe = self._lb_tables
+        for k, j in enumerate(others):
+            # Lower bound: distance from j's base to i's capsule minus the farthest point of j's capsule from its base.
+            base = self.scenario.base_xy[j]
+            reach = np.maximum(np.linalg.norm(o_start[k] - base, axis=-1), np.linalg.norm(o_end[k] - base, axis=-1))[cb]
+            dist, _ = _point_to_segment(base[0], base[1], a[..., 0], a[..., 1], d[..., 0], d[..., 1], nz, safe)
+            lb = (dist - reach - radii).min(axis=1)
+            close = np.flatnonzero(lb < cutoff)
+            c = lb
+            if len(close):
+                exact, _, _ = segment_distance(self.seg_start[close][:, ca], self.seg_end[close][:, ca], o_start[k][cb], o_end[k][cb])
+                c = lb.copy()
+                c[close] = (exact - radii).min(axis=1)
+            res.append(c)
+        return res
+
+    def ends(self, q: np.ndarray, free: np.ndarray, others: np.ndarray, q_others: np.ndarray) -> np.ndarray:
+        """Free cells near ``q`` joined to it by a straight segment with enough clearance: (K, 2) indices.
+
+        The segment needs ``end_clear_mm``, or half the clearance at ``q`` when that is less."""
+        floor = min(self.end_clear_mm, 0.5 * float(_clearance_to(self.scenario, self.i, q[None, :], others, q_others)[0]))
+        centre = np.round((q - self.lo) / self.cell).astype(int)
+        offs = np.arange(-self.end_cells, self.end_cells + 1)
+        idx = np.stack(np.meshgrid(offs, offs, indexing="ij"), axis=-1).reshape(-1, 2) + centre
+        idx = idx[np.all((idx >= 0) & (idx < self.shape), axis=1)]
+        idx = idx[free[idx[:, 0], idx[:, 1]]]
+        if len(idx) == 0:
+            return idx
+        # Nearest first (in steps), so that ties in the search prefer the shortest connection.
+        pts = self.lo + idx * self.cell
+        idx = idx[np.argsort(np.max(np.abs(pts - q) / self.step_rad, axis=1), kind="stable")]
+        segs = [_densify(np.array([q, p]), 0.5 * self.step_rad) for p in self.lo + idx * self.cell]
+        c = _clearance_to(self.scenario, self.i, np.concatenate(segs), others, q_others)
+        bounds = np.cumsum([0] + [len(s) for s in segs])
+        ok = np.array([c[a:b].min() >= floor for a, b in itertools.pairwise(bounds)])
+        return idx[ok]
+
+    def search(self, free: np.ndarray, sources: np.ndarray, targets: np.ndarray | None = None) -> np.ndarray:
+        """Breadth-first search over free cells from ``sources`` (8-connected, one wave front per
+        move): steps from the nearest source, -1 where unreachable. Stops early once a cell of
+        ``targets`` (a mask) is reached."""
+        dist = np.full(self.shape, -1, dtype=np.int64)
+        front = np.zeros(self.shape, dtype=bool)
+        front[sources[:, 0], sources[:, 1]] = True
+        d = 0
+        while front.any():
+            dist[front] = d
+            if targets is not None and np.any(front & targets):
+                break
+            grow = front.copy()
+            grow[1:] |= front[:-1]
+            grow[:-1] |= front[1:]
+            grow[:, 1:] |= grow[:, :-1].copy()
+            grow[:, :-1] |= grow[:, 1:].copy()
+            front = grow & free & (dist < 0)
+            d += 1
+        return dist
+
+    def waypoints(self, dist: np.ndarray, cell: tuple[int, int], reverse: bool = False) -> np.ndarray:
+        """Joint waypoints of a shortest search path from a source to ``cell`` (``reverse``: from
+        ``cell`` toward the source), keeping only the cells where the direction changes. The
+        path steps down the distance map; ties go to the first of the 8 moves in a fixed order."""
+        moves = [(da, db) for da in (-1, 0, 1) for db in (-1, 0, 1) if da or db]
+        cells = [cell]
+        a, b = cell
+        while dist[a, b] > 0:
+            for da, db in moves:
+                x, y = a + da, b + db
+                if 0 <= x < self.shape[0] and 0 <= y < self.shape[1] and dist[x, y] == dist[a, b] - 1:
+                    a, b = x, y
+                    break
+            cells.append((a, b))
+        path = np.array(cells if reverse else cells[::-1])
+        if len(path) > 2:
+            d = np.diff(path, axis=0)
+            turn = np.any(d[1:] != d[:-1], axis=1)
+            path = np.concatenate([path[:1], path[1:-1][turn], path[-1:]])
+        return self.lo + path * self.cell
+
+
+def _grid(scenario: Scenario, i: int, step_rad: np.ndarray, clear_mm: float, end_clear_mm: float, cell_steps: float,
+          cache: dict[int, _Grid] | None) -> _Grid:
+    """Positioner ``i``'s grid, from ``cache`` when given (one planning run: same settings)."""
+    if cache is not None and i in cache:
+        return cache[i]
+    grid = _Grid(scenario, i, step_rad, clear_mm, end_clear_mm, cell_steps)
+    if cache is not None:
+        cache[i] = grid
+    return grid
+
+
+def _route(grid: _Grid, free: np.ndarray, q_from: np.ndarray, q_to: np.ndarray, others: np.ndarray, q_others: np.ndarray) -> np.ndarray | None:
+    starts, goals = grid.ends(q_from, free, others, q_others), grid.ends(q_to, free, others, q_others)
+    if len(starts) == 0 or len(goals) == 0:
+        return None
+    targets = np.zeros(grid.shape, dtype=bool)
+    targets[goals[:, 0], goals[:, 1]] = True
+    dist = grid.search(free, starts, targets)
+    d = dist[goals[:, 0], goals[:, 1]]
+    if not np.any(d >= 0):
+        return None
+    best = goals[np.flatnonzero(d >= 0)[np.argmin(d[d >= 0])]]
+    return np.concatenate([grid.waypoints(dist, (int(best[0]), int(best[1]))), q_to[None, :]])
+
+
+def detour_route(
+    scenario: Scenario, i: int, q_from: np.ndarray, q_to: np.ndarray, others: np.ndarray, q_others: np.ndarray,
+    step_rad: np.ndarray, clear_mm: float, end_clear_mm: float, cell_steps: float = 2.0, cache: dict[int, _Grid] | None = None,
+) -> np.ndarray | None:
+    """Waypoints ``(W, 2)`` (the last one ``q_to``) leading positioner ``i`` from ``q_from`` to ``q_to``
+    around ``others`` held at ``q_others`` (one row per obstacle configuration), or ``None``.
+
+    The route leaves ``q_from`` and enters ``q_to`` through straight segments to free cells at
+    most three cells away whose sampled clearance is at least ``end_clear_mm`` (the ends
+    themselves may be closer to the obstacles than the grid's threshold).
+    """
+    grid = _grid(scenario, i, step_rad, clear_mm, end_clear_mm, cell_steps, cache)
+    free = grid.clearance(others, q_others, 2 * grid.threshold) >= grid.threshold
+    return _route(grid, free, q_from, q_to, others, q_others)
+
+
+@dataclass(frozen=True)
+class PairResolution:
+    """Routes for a blocked pair: ``first`` goes to its target along ``first_route`` while
+    ``waiter`` goes to ``wait_q`` along ``to_wait`` and, once ``first`` has arrived, to its
+    target along ``from_wait`` (all waypoints, each ending at its destination)."""
+
+    first: int
+    waiter: int
+    first_route: np.ndarray
+    wait_q: np.ndarray
+    to_wait: np.ndarray
+    from_wait: np.ndarray
+
+
+def pair_resolution(
+    scenario: Scenario, first: int, waiter: int, q: np.ndarray, goal: np.ndarray, neighbours: list[np.ndarray],
+    step_rad: np.ndarray, clear_mm: float, end_clear_mm: float, cell_steps: float = 2.0, cache: dict[int, _Grid] | None = None,
+) -> PairResolution | None:
+    """A waiting place for ``waiter`` that lets ``first`` reach its target, or ``None``.
+
+    ``first`` routes around its other neighbours held where they are (``q``); ``waiter``'s
+    waiting place is the cell nearest (in steps) to where it is such that: it can get there
+    around its other neighbours and ``first`` held where they are; ``first``'s whole route
+    clears it; and from it ``waiter`` can reach its target ``goal[waiter]`` around its other
+    neighbours and ``first`` at its target.
+    """
+    f_other = neighbours[first][neighbours[first] != waiter]
+    w_other = neighbours[waiter][neighbours[waiter] != first]
+    f_grid = _grid(scenario, first, step_rad, clear_mm, end_clear_mm, cell_steps, cache)
+    f_free = f_grid.clearance(f_other, q[f_other], 2 * f_grid.threshold) >= f_grid.threshold
+    first_route = _route(f_grid, f_free, q[first], goal[first], f_other, q[f_other])
+    if first_route is None:
+        return None
+    w_grid = _grid(scenario, waiter, step_rad, clear_mm, end_clear_mm, cell_steps, cache)
+    c_other = w_grid.clearance(w_other, q[w_other], 2 * w_grid.threshold)
+    thr = w_grid.threshold
+    # Reachable now: around its neighbours and first where they are.
+    free_now = (c_other >= thr) & (w_grid.clearance(np.array([first]), q[[first]], 2 * thr) >= thr)
+    obstacles_now = np.concatenate([w_other, [first]])
+    starts = w_grid.ends(q[waiter], free_now, obstacles_now, q[obstacles_now])
+    if len(starts) == 0:
+        return None
+    d_from = w_grid.search(free_now, starts)
+    # Able to reach the target once first is there.
+    free_after = (c_other >= thr) & (w_grid.clearance(np.array([first]), goal[[first]], 2 * thr) >= thr)
+    obstacles_after = np.concatenate([w_other, [first]])
+    q_after = np.concatenate([q[w_other], goal[[first]]])
+    goals = w_grid.ends(goal[waiter], free_after, obstacles_after, q_after)
+    if len(goals) == 0:
+        return None
+    d_to = w_grid.search(free_after, goals)
+    # Candidates nearest first (then the shortest way on), checked in chunks until one clears
+    # first's whole route: samples one cell apart, so the clearance between samples needs
+    # another half motion bound of a cell.
+    reach = np.flatnonzero(((d_from >= 0) & (d_to >= 0)).ravel())
+    if len(reach) == 0:
+        return None
+    score = d_from.ravel()[reach] * 4 + d_to.ravel()[reach]
+    reach = reach[np.argsort(score, kind="stable")]
+    path = _densify(first_route, w_grid.cell)
+    need = thr + (thr - clear_mm)
+    found = None
+    for chunk in range(0, len(reach), 256):
+        cand = reach[chunk:chunk + 256]
+        c_route = _clearance_to_many(scenario, waiter, w_grid.configs[cand], first, path).min(axis=1)
+        good = np.flatnonzero(c_route >= need)
+        if len(good):
+            found = cand[good[0]]
+            break
+    if found is None:
+        return None
+    a, b = np.unravel_index(found, w_grid.shape)
+    cell = (int(a), int(b))
+    wait_q = w_grid.lo + np.array(cell) * w_grid.cell
+    to_wait = w_grid.waypoints(d_from, cell)
+    from_wait = np.concatenate([w_grid.waypoints(d_to, cell, reverse=True), goal[waiter][None, :]])
+    return PairResolution(first, waiter, first_route, wait_q, to_wait, from_wait)
+
+
+def _clearance_to_many(scenario: Scenario, i: int, configs: np.ndarray, j: int, q_j: np.ndarray) -> np.ndarray:
+    """Clearance ``(K, P)`` of positioner ``i`` at each of ``configs`` (K) to ``j`` at each of ``q_j`` (P)."""
+    k, p = len(configs), len(q_j)
+    c = clearance_between(
+        scenario.instrument,
+        np.broadcast_to(scenario.base_xy[i], (k * p, 2)), np.full(k * p, scenario.orient[i]), np.repeat(configs, p, axis=0),
+        np.broadcast_to(scenario.base_xy[j], (k * p, 2)), np.full(k * p, scenario.orient[j]), np.tile(q_j, (k, 1)),
+    ).min(axis=-1)
+    return c.reshape(k, p)
