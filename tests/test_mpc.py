@@ -279,9 +279,9 @@ def test_waiting_rule_orders_a_pair_whose_targets_interlock():
 
 
 def test_run_stops_when_nothing_can_progress_and_loses_nothing():
-    # DESI seed 0, N = 500 leaves one positioner stuck; the stop rule ends the run early, and
+    # DESI seed 6, N = 500 leaves two positioners stuck; the stop rule ends the run early, and
     # planning on to the time limit reaches no more targets.
-    sc = make_scenario("desi", 500, "random", 0)
+    sc = make_scenario("desi", 500, "random", 6)
     stopped = plan(sc, "mpc")
     full = plan(sc, "mpc", {"stop_after_stalled_windows": 0})
     assert stopped.stats["stopped_stalled"] and not full.stats["stopped_stalled"]

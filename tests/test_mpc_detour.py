@@ -1,0 +1,111 @@
+"""Tests of the ``mpc`` planner's detours (``planners/mpc_detour.py``): grid clearances against the
+exact capsule distances, routes that keep their clearance, pair resolutions whose three routes
+are clear of the other positioner, and a pair that deadlocks without detours and arrives with them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fiberplan.generate import make_scenario
+from fiberplan.planners import make_settings, plan
+from fiberplan.planners.mpc import _path_clearance
+from fiberplan.planners.mpc_detour import _clearance_to, _densify, _Grid, detour_route, pair_resolution
+from fiberplan.scenario import Scenario, _replace
+from fiberplan.verify import verify
+
+
+def _subset(scenario: Scenario, rows: list[int]) -> Scenario:
+    r = np.asarray(rows)
+    return _replace(
+        scenario, ids=scenario.ids[r], base_xy=scenario.base_xy[r], orient_deg=scenario.orient_deg[r], start_deg=scenario.start_deg[r],
+        target_kind=scenario.target_kind[r], target_values=scenario.target_values[r], target_parity=scenario.target_parity[r],
+        name="pair",
+    )
+
+
+@pytest.fixture(scope="module")
+def pair():
+    """DESI N = 500 seed 0, positioners 65 and 93 alone: 93's straight path crosses 65's target,
+    so once 65 has arrived the two push each other off their targets in turn."""
+    sc = _subset(make_scenario("desi", 500, "random", 0), [65, 93])
+    settings = make_settings("mpc", sc)
+    return sc, settings, sc.instrument.speeds_rad_s * settings.dt_s
+
+
+def _route_clearance(sc, i, q_from, waypoints, j, q_j, step_rad):
+    pts = _densify(np.vstack([q_from, waypoints]), 0.25 * step_rad)
+    return _clearance_to(sc, i, pts, np.array([j]), q_j[None, :]).min()
+
+
+@pytest.mark.parametrize("instrument", ["desi", "moons", "sdss"])
+def test_grid_clearances_are_exact_below_the_cutoff(instrument):
+    sc = make_scenario(instrument, 19, "random", 3)
+    settings = make_settings("mpc", sc)
+    step_rad = sc.instrument.speeds_rad_s * settings.dt_s
+    i = int(sc.pairs[0, 0])
+    nb = np.concatenate([sc.pairs[sc.pairs[:, 0] == i, 1], sc.pairs[sc.pairs[:, 1] == i, 0]])
+    grid = _Grid(sc, i, step_rad, settings.margin_mm, settings.safety_margin_mm, cell_steps=4.0)
+    exact = _clearance_to(sc, i, grid.configs, nb, sc.start[nb])
+    cutoff = float(np.median(exact))
+    fast = grid.clearance(nb, sc.start[nb], cutoff).ravel()
+    below = exact < cutoff
+    assert below.any() and (~below).any()
+    np.testing.assert_allclose(fast[below], exact[below], atol=1e-9)
+    assert np.all(fast[~below] >= cutoff - 1e-9)  # a lower bound where not computed exactly
+    assert np.array_equal(grid.clearance(nb, sc.start[nb], cutoff).ravel(), fast)  # kept, not recomputed differently
+
+
+def test_detour_route_goes_around_a_neighbour(pair):
+    sc, settings, step_rad = pair
+    # 93 held at 65's target side: 65's route must keep the grid clearance away from its ends.
+    wp = detour_route(sc, 0, sc.start[0], sc.target[0], np.array([1]), sc.target[[1]], step_rad, settings.margin_mm, settings.safety_margin_mm)
+    assert wp is not None and np.array_equal(wp[-1], sc.target[0])
+    inner = _densify(wp[:-1], 0.25 * step_rad)  # the grid part of the route
+    assert _clearance_to(sc, 0, inner, np.array([1]), sc.target[[1]]).min() >= settings.margin_mm - 1e-9
+    assert _route_clearance(sc, 0, sc.start[0], wp, 1, sc.target[1], step_rad) > 0
+    # Nothing to find when the neighbour sits on the target itself: 93 held where its straight
+    # path comes closest to 65's target (they overlap there).
+    path = _densify(np.array([sc.start[1], sc.target[1]]), step_rad)
+    overlap = [float(_clearance_to(sc, 0, sc.target[[0]], np.array([1]), p[None, :])[0]) for p in path]
+    q_block = path[int(np.argmin(overlap))]
+    assert min(overlap) < 0
+    assert detour_route(sc, 0, sc.start[0], sc.target[0], np.array([1]), q_block[None, :], step_rad,
+                        settings.margin_mm, settings.safety_margin_mm) is None
+
+
+def test_pair_resolution_routes_are_clear_of_the_other(pair):
+    sc, settings, step_rad = pair
+    # The straight moves block each other: 93's path crosses 65 at its target.
+    blocked = _path_clearance(sc, np.array([1]), np.array([0]), sc.start[[1]], sc.target[[1]], sc.target[[0]], step_rad)
+    assert blocked[0] < 0
+    nb = [np.array([1]), np.array([0])]
+    for first, waiter in ((0, 1), (1, 0)):
+        res = pair_resolution(sc, first, waiter, sc.start, sc.target, nb, step_rad, settings.margin_mm, settings.safety_margin_mm)
+        assert res is not None and (res.first, res.waiter) == (first, waiter)
+        assert np.array_equal(res.first_route[-1], sc.target[first]) and np.array_equal(res.from_wait[-1], sc.target[waiter])
+        assert np.array_equal(res.to_wait[-1], res.wait_q) and np.array_equal(res.from_wait[0], res.wait_q)
+        # first's whole route clears the waiter at its waiting place ...
+        assert _route_clearance(sc, first, sc.start[first], res.first_route, waiter, res.wait_q, step_rad) >= settings.margin_mm - 1e-9
+        # ... the waiter gets there clear of first where it is, and home clear of first at its target.
+        assert _route_clearance(sc, waiter, sc.start[waiter], res.to_wait, first, sc.start[first], step_rad) > 0
+        assert _route_clearance(sc, waiter, res.wait_q, res.from_wait, first, sc.target[first], step_rad) > 0
+
+
+def test_detours_resolve_a_pair_that_deadlocks_without_them(pair):
+    sc, _, _ = pair
+    without = plan(sc, "mpc", {"detours": False})
+    assert np.all(without.outcome == "deadlocked")  # the failure the detours exist for
+    result = plan(sc, "mpc")
+    assert np.all(result.outcome == "reached")
+    assert result.stats["pair_resolutions"] >= 1
+    report = verify(sc, result.trajectory)
+    assert report.n_collisions == 0 and not report.limit_violations
+
+
+def test_bad_detour_settings_are_rejected():
+    from fiberplan.errors import PlannerError
+
+    sc = make_scenario("desi", 7, "random", 0)
+    with pytest.raises(PlannerError, match="detour_max"):
+        make_settings("mpc", sc, {"detour_max": 0})
