@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import os
 import platform
+import subprocess
 import sys
+from pathlib import Path
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
@@ -19,6 +21,22 @@ def package_version(name: str) -> str:
         return "not installed"
 
 
+def source_commit() -> str:
+    """The git commit of the fiberplan source that is imported, ``-dirty`` when ``src/`` has
+    uncommitted changes; "unknown" outside a git checkout."""
+    import fiberplan
+
+    root = Path(fiberplan.__file__).resolve().parents[2]
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--", "src"], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    if head.returncode != 0:
+        return "unknown"
+    return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+
+
 def machine_info(extra_packages: tuple[str, ...] = ()) -> dict[str, Any]:
     """Platform, CPU count, load average at start, and the versions of the packages that matter."""
     return {
@@ -28,4 +46,5 @@ def machine_info(extra_packages: tuple[str, ...] = ()) -> dict[str, Any]:
         "cpu_count": os.cpu_count(),
         "load_average_at_start": list(os.getloadavg()),
         "packages": {name: package_version(name) for name in (*BASE_PACKAGES, *extra_packages)},
+        "fiberplan_commit": source_commit(),
     }
