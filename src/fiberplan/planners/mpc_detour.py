@@ -133,7 +133,7 @@ class _Grid:
         idx = idx[free[idx[:, 0], idx[:, 1]]]
         if len(idx) == 0:
             return idx
-        # Nearest first (in steps), so that ties in the search prefer the shortest connection.
+        # Nearest first (in steps): of equally good cells, the one nearest q is taken.
         pts = self.lo + idx * self.cell
         idx = idx[np.argsort(np.max(np.abs(pts - q) / self.step_rad, axis=1), kind="stable")]
         segs = [_densify(np.array([q, p]), 0.5 * self.step_rad) for p in self.lo + idx * self.cell]
@@ -285,7 +285,7 @@ def pair_resolution(
         return None
     score = d_from.ravel()[reach] * 4 + d_to.ravel()[reach]
     reach = reach[np.argsort(score, kind="stable")]
-    path = _densify(first_route, w_grid.cell)
+    path = _densify(np.vstack([q[first], first_route]), w_grid.cell)
     need = thr + (thr - clear_mm)
     found = None
     for chunk in range(0, len(reach), 256):
