@@ -6,12 +6,17 @@ For each instrument and group size, runs ``central``, ``mpc`` and ``dnf`` on the
 parameters, per-planner aggregates (success, makespan gap to central: median and 90th
 percentile, energy gap at equal makespan, plan wall times) and every row. The file is
 rewritten after each seed, so an interrupted run keeps what it measured (``seeds_done``);
-``--resume`` continues such a file (same parameters) with the seeds it lacks.
+``--resume`` continues such a file (same parameters) with the seeds it lacks. ``--replace
+PLANNER`` re-runs one decentralised planner on the seeds of existing files (after a change
+to it) and recomputes its gaps against the central rows kept in the file; refused where the
+central solutions depended on that planner (it is among central's warm starts) or where energy
+gaps are recorded (they need new central solves).
 
 Usage::
 
     python benchmarks/bench_central.py --instrument desi --positioners 7 19 --seeds 30
     python benchmarks/bench_central.py --table          # markdown gap table from the result files
+    python benchmarks/bench_central.py --instrument moons --positioners 7 --replace mpc
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ from typing import Any
 from _machine import machine_info
 
 from fiberplan._atomic import atomic_path
-from fiberplan.compare import HARD_KIND, aggregate, run_compare
+from fiberplan.compare import HARD_KIND, _add_gaps, aggregate, run_compare
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -115,6 +120,43 @@ def run_one(
     return payload
 
 
+def replace_planner(out: Path, planner: str) -> dict[str, Any]:
+    """Re-run ``planner`` on every seed of the result file ``out``; keep the other rows."""
+    if not out.exists():
+        raise SystemExit(f"--replace: {out} does not exist; run the benchmark first")
+    data = json.loads(out.read_text())
+    par = data["parameters"]
+    if planner not in par["planners"] or planner == "central":
+        raise SystemExit(f"--replace: {planner!r} is not a decentralised planner of {out} ({par['planners']})")
+    if par["energy_gap"]:
+        raise SystemExit(f"--replace: {out} records energy gaps, which need new central solves; re-run it whole")
+    warm = (par.get("central_overrides") or {}).get("warm_start")
+    if warm is None or planner in warm:
+        raise SystemExit(f"--replace: central in {out} warm-started from {planner!r}'s results; re-run it whole")
+    t0 = time.perf_counter()
+    rows = data["rows"]
+    for seed in par["seeds_done"]:
+        new = run_compare(par["instrument"], par["n_positioners"], [planner], [seed], kind=HARD_KIND, energy_gap=False).rows[0]
+        by_planner = {r["planner"]: r for r in rows if r["seed"] == seed and r["planner"] != planner}
+        by_planner[planner] = new
+        _add_gaps(by_planner)
+        rows = [r for r in rows if not (r["seed"] == seed and r["planner"] == planner)] + [new]
+        print(f"{par['instrument']} {par['n_positioners']} seed {seed}: {planner} success {new['success_rate']:.3f} "
+              f"gap {new['gap_to_central']}", flush=True)
+    rows.sort(key=lambda r: (r["seed"], par["planners"].index(r["planner"])))
+    data["rows"] = rows
+    data["aggregates"] = aggregate(rows)
+    data.setdefault("replaced", []).append({
+        "planner": planner,
+        "date_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "machine": machine_info(("casadi", "osqp")),
+        "elapsed_s": time.perf_counter() - t0,
+    })
+    with atomic_path(out) as tmp:
+        tmp.write_text(json.dumps(_clean(data), indent=1))
+    return data
+
+
 def _fmt(value: Any, spec: str) -> str:
     return "n/a" if value is None or (isinstance(value, float) and not math.isfinite(value)) else format(value, spec)
 
@@ -178,6 +220,7 @@ def main() -> None:
         help="continue the existing result file (same parameters): keep its rows, run the seeds it lacks",
     )
     parser.add_argument("--table", action="store_true", help="print the markdown gap table of the result files and exit")
+    parser.add_argument("--replace", metavar="PLANNER", help="re-run this planner on the seeds of the existing result files")
     args = parser.parse_args()
     if args.table:
         print(table(args.results))
@@ -193,6 +236,9 @@ def main() -> None:
     for instrument in args.instrument:
         for n in args.positioners:
             out = args.results / f"central_{instrument}_{n}.json"
+            if args.replace:
+                replace_planner(out, args.replace)
+                continue
             run_one(instrument, n, list(range(args.seeds)), planners, not args.no_energy_gap, args.budget_s, out, central, args.resume)
 
 
