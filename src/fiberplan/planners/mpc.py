@@ -500,7 +500,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     n_pair_resolutions = 0
     grids: dict = {}  # joint-space grids of the positioners that needed a detour (mpc_detour)
     after_wait: dict[int, np.ndarray] = {}  # a waiter's route from its waiting place, once released
-    neighbours = [np.concatenate([pairs[pairs[:, 0] == i, 1], pairs[pairs[:, 1] == i, 0]]) for i in range(n)] if settings.detours else []
+    neighbours = _neighbour_lists(pairs, n) if settings.detours else []
 
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
     try:
@@ -668,10 +668,12 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # the neighbour's arrival (blocked on its way by a third positioner).
             leader_home = has_rule & at_goal_final[np.maximum(wait_first, 0)]
             leader_home_since = np.where(leader_home, leader_home_since, step)
-            late = np.zeros(n, dtype=bool)
-            late[list(after_wait)] = True
-            late &= step - leader_home_since >= window
-            first_arrived |= leader_home & (np.all(q == wait_q, axis=1) | late)
+            release = np.all(q == wait_q, axis=1)
+            if after_wait:
+                late = np.zeros(n, dtype=bool)
+                late[list(after_wait)] = True
+                release |= late & (step - leader_home_since >= window)
+            first_arrived |= leader_home & release
             for w in [w for w in after_wait if first_arrived[w]]:
                 route = after_wait.pop(w)
                 if np.all(q[w] == wait_q[w]):  # else the route does not start where it is
@@ -801,6 +803,16 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         settings=dataclasses.asdict(settings),
         stats=stats,
     )
+
+
+def _neighbour_lists(pairs: np.ndarray, n: int) -> list[np.ndarray]:
+    """Each positioner's neighbours: partners where it is first in ``pairs``, then where it is
+    second, each in pair order (one sort per column, not a scan of all pairs per positioner)."""
+    parts = []
+    for own, other in ((0, 1), (1, 0)):
+        order = np.argsort(pairs[:, own], kind="stable")
+        parts.append(np.split(pairs[order, other], np.searchsorted(pairs[order, own], np.arange(1, n))))
+    return [np.concatenate([a, b]) for a, b in zip(parts[0], parts[1], strict=True)]
 
 
 def _resolve_blocked(

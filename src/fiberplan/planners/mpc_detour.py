@@ -31,17 +31,22 @@ from fiberplan.scenario import Scenario
 __all__ = ["PairResolution", "detour_route", "pair_resolution"]
 
 
-def _clearance_to(scenario: Scenario, i: int, configs: np.ndarray, others: np.ndarray, q_others: np.ndarray) -> np.ndarray:
-    """Smallest clearance of positioner ``i`` at each of ``configs`` (K, 2) to ``others`` held at ``q_others``."""
+def _cross_clearance(scenario: Scenario, i: int, configs: np.ndarray, others: np.ndarray, q_others: np.ndarray) -> np.ndarray:
+    """Clearance ``(K, M)`` of positioner ``i`` at each of ``configs`` (K, 2) to each of ``others`` (M) at ``q_others`` (M, 2)."""
     k, m = len(configs), len(others)
-    if m == 0:
-        return np.full(k, np.inf)
     c = clearance_between(
         scenario.instrument,
         np.broadcast_to(scenario.base_xy[i], (k * m, 2)), np.full(k * m, scenario.orient[i]), np.repeat(configs, m, axis=0),
         scenario.base_xy[np.tile(others, k)], scenario.orient[np.tile(others, k)], np.tile(q_others, (k, 1)),
     ).min(axis=-1)
-    return c.reshape(k, m).min(axis=1)
+    return c.reshape(k, m)
+
+
+def _clearance_to(scenario: Scenario, i: int, configs: np.ndarray, others: np.ndarray, q_others: np.ndarray) -> np.ndarray:
+    """Smallest clearance of positioner ``i`` at each of ``configs`` (K, 2) to ``others`` held at ``q_others``."""
+    if len(others) == 0:
+        return np.full(len(configs), np.inf)
+    return _cross_clearance(scenario, i, configs, others, q_others).min(axis=1)
 
 
 def _densify(waypoints: np.ndarray, spacing: np.ndarray) -> np.ndarray:
@@ -290,7 +295,7 @@ def pair_resolution(
     found = None
     for chunk in range(0, len(reach), 256):
         cand = reach[chunk:chunk + 256]
-        c_route = _clearance_to_many(scenario, waiter, w_grid.configs[cand], first, path).min(axis=1)
+        c_route = _cross_clearance(scenario, waiter, w_grid.configs[cand], np.full(len(path), first), path).min(axis=1)
         good = np.flatnonzero(c_route >= need)
         if len(good):
             found = cand[good[0]]
@@ -304,13 +309,3 @@ def pair_resolution(
     from_wait = np.concatenate([w_grid.waypoints(d_to, cell, reverse=True), goal[waiter][None, :]])
     return PairResolution(first, waiter, first_route, wait_q, to_wait, from_wait)
 
-
-def _clearance_to_many(scenario: Scenario, i: int, configs: np.ndarray, j: int, q_j: np.ndarray) -> np.ndarray:
-    """Clearance ``(K, P)`` of positioner ``i`` at each of ``configs`` (K) to ``j`` at each of ``q_j`` (P)."""
-    k, p = len(configs), len(q_j)
-    c = clearance_between(
-        scenario.instrument,
-        np.broadcast_to(scenario.base_xy[i], (k * p, 2)), np.full(k * p, scenario.orient[i]), np.repeat(configs, p, axis=0),
-        np.broadcast_to(scenario.base_xy[j], (k * p, 2)), np.full(k * p, scenario.orient[j]), np.tile(q_j, (k, 1)),
-    ).min(axis=-1)
-    return c.reshape(k, p)
