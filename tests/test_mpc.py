@@ -11,7 +11,7 @@ from fiberplan.generate import make_scenario
 from fiberplan.instrument import load_instrument
 from fiberplan.metrics import summarize
 from fiberplan.planners import make_settings, plan
-from fiberplan.planners.mpc import MpcSettings, outranks, straight_path, waiting_configuration
+from fiberplan.planners.mpc import MpcSettings, _SafetyLayer, outranks, route_path, straight_path, waiting_configuration
 from fiberplan.planners.mpc_qp import STATUS_FAILED, STATUS_SOLVED, OsqpOptions, PositionerQP, QpData, QpLayout, QpWeights
 from fiberplan.verify import verify
 
@@ -279,15 +279,16 @@ def test_waiting_rule_orders_a_pair_whose_targets_interlock():
 
 
 def test_run_stops_when_nothing_can_progress_and_loses_nothing():
-    # DESI seed 6, N = 500 leaves two positioners stuck; the stop rule ends the run early, and
-    # planning on to the time limit reaches no more targets.
-    sc = make_scenario("desi", 500, "random", 6)
+    # DESI seed 9, N = 500 leaves a positioner stuck; the stop rule ends the run early, and
+    # planning on to the time limit reaches no more targets (here one fewer: the stuck one
+    # pushes an arrived neighbour off its target).
+    sc = make_scenario("desi", 500, "random", 9)
     stopped = plan(sc, "mpc")
     full = plan(sc, "mpc", {"stop_after_stalled_windows": 0})
     assert stopped.stats["stopped_stalled"] and not full.stats["stopped_stalled"]
     assert stopped.stats["n_steps"] < full.stats["n_steps"]
     _check_safe(stopped)
-    assert np.sum(stopped.outcome == "reached") == np.sum(full.outcome == "reached") < sc.n_positioners
+    assert sc.n_positioners > np.sum(stopped.outcome == "reached") >= np.sum(full.outcome == "reached")
 
 
 def test_outranks_lets_a_waiter_defer_whatever_the_rank():
@@ -317,3 +318,61 @@ def test_mpc_desi_500_seed_1_reaches_every_target():
     result = plan(make_scenario("desi", 500, "random", 1), "mpc")
     report = _check_safe(result)
     assert summarize(result, report)["success_rate"] == 1.0
+
+
+def test_route_path_runs_through_waypoints_at_full_speed():
+    step = np.array([0.1, 0.05])
+    route = np.array([[0.0, 0.0], [0.2, 0.1], [0.2, 0.2]])
+    path = route_path(route[0], route, 0, step, 5)
+    # No stop at the corner: two diagonal steps, then two along beta, then held at the end.
+    assert np.allclose(path, [[0.1, 0.05], [0.2, 0.1], [0.2, 0.15], [0.2, 0.2], [0.2, 0.2]])
+
+
+def test_safety_layer_lets_a_pair_in_near_contact_part():
+    # DESI seed 7, N = 500 starts 257 and 297 0.003 mm apart. Turning 257's alpha one full step
+    # away parts them (0.11 mm), but the one-piece-in-eight bound cannot prove it (it assumes
+    # the closest points approach at full speed); bisecting the pieces can. Both positioners
+    # used to be held for hundreds of steps.
+    sc = make_scenario("desi", 500, "random", 7)
+    settings = make_settings("mpc", sc)
+    pair = np.array([[257, 297]])
+    q = sc.start.copy()
+    bisecting = _SafetyLayer(sc, settings.safety_margin_mm)
+    coarse = _SafetyLayer(sc, settings.safety_margin_mm, bisections=0)
+    c0 = bisecting.clearance(q, pair)
+    assert 0 < c0[0] < settings.safety_margin_mm
+    step = sc.instrument.speeds_rad_s * settings.dt_s
+    away, toward = q.copy(), q.copy()
+    away[257, 0] -= step[0]
+    toward[257, 0] += step[0]
+    assert bisecting.clearance(away, pair)[0] > 0.1 and bisecting.clearance(toward, pair)[0] < 0
+    floor = np.array([settings.safety_margin_mm])
+    assert coarse.unsafe(pair, q, away, c0, floor)[0]
+    assert not bisecting.unsafe(pair, q, away, c0, floor)[0]
+    assert bisecting.unsafe(pair, q, toward, c0, floor)[0]
+
+
+def test_safety_layer_bisection_never_passes_a_step_that_dips_below_its_floor():
+    # Random steps of the near-contact pair above: whatever the layer passes keeps at least
+    # half the floor at 400 points along the step (and the floor at its end).
+    sc = make_scenario("desi", 500, "random", 7)
+    settings = make_settings("mpc", sc)
+    layer = _SafetyLayer(sc, settings.safety_margin_mm)
+    pair = np.array([[257, 297]])
+    q = sc.start.copy()
+    c0 = layer.clearance(q, pair)
+    f = min(settings.safety_margin_mm, c0[0])
+    step = sc.instrument.speeds_rad_s * settings.dt_s
+    rng = np.random.default_rng(0)
+    passed = 0
+    for _ in range(150):
+        q_next = q.copy()
+        q_next[[257, 297]] += rng.uniform(-1, 1, (2, 2)) * step
+        if layer.unsafe(pair, q, q_next, c0, np.array([settings.safety_margin_mm]))[0]:
+            continue
+        passed += 1
+        t = np.linspace(0, 1, 401)[:, None, None]
+        path = q[None, [257, 297]] + t * (q_next[[257, 297]] - q[[257, 297]])[None]
+        c = layer._between(np.repeat(pair, len(t), axis=0), path[:, 0], path[:, 1])
+        assert c.min() >= 0.5 * f and c[-1] >= f
+    assert passed > 10

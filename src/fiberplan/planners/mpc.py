@@ -217,6 +217,31 @@ def straight_path(q: np.ndarray, goal: np.ndarray, step_rad: np.ndarray, n_steps
     return q[:, None, :] + np.clip(delta, -k * step_rad, k * step_rad)
 
 
+ROUTE_PASS = 0.5
+"""A detour waypoint counts as passed within this many full steps of it (per joint)."""
+
+
+def route_path(q: np.ndarray, route: np.ndarray, pos: int, step_rad: np.ndarray, n_steps: int) -> np.ndarray:
+    """Saturated path of one positioner along its detour waypoints ``route[pos:]``: ``(n_steps, 2)``.
+
+    Each step moves every joint up to a full step toward the current waypoint and passes on to
+    the next one once there, so the reference runs through the waypoints instead of stopping at
+    each (a stop costs a step of deceleration per waypoint, a third of a detour's time when the
+    waypoints are two steps apart). The part of a step left when a waypoint is reached mid-step
+    is not carried over: the path stays on the route's segments, which are what the detour search
+    checked for clearance.
+    """
+    out = np.empty((n_steps, 2))
+    p = q.astype(float)
+    last = len(route) - 1
+    for k in range(n_steps):
+        while pos < last and np.all(np.abs(p - route[pos]) <= ROUTE_PASS * step_rad):
+            pos += 1
+        p = p + np.clip(route[pos] - p, -step_rad, step_rad)
+        out[k] = p
+    return out
+
+
 def _path_clearance(
     scenario: Scenario, mover: np.ndarray, other: np.ndarray, q_from: np.ndarray, q_to: np.ndarray, q_other: np.ndarray,
     step_rad: np.ndarray, stride: int = 2,
@@ -294,13 +319,14 @@ class _Counters:
 class _SafetyLayer:
     """Stops positioners whose executed step would bring a pair too close (exact distances)."""
 
-    def __init__(self, scenario: Scenario, floor_mm: float, subdivisions: int = 8) -> None:
+    def __init__(self, scenario: Scenario, floor_mm: float, subdivisions: int = 8, bisections: int = 6) -> None:
         self.inst = scenario.instrument
         self.base = scenario.base_xy
         self.orient = scenario.orient
         self.pairs = scenario.pairs
         self.floor = floor_mm
         self.subdivisions = subdivisions
+        self.bisections = bisections
         self.rho = np.array([self.inst.alpha_point_extent_mm, self.inst.beta_point_extent_mm])
         # Per pair: the floor, but at most half the pair's clearance at the targets, so that
         # targets closer together than the floor stay reachable (still proven > 0 in between).
@@ -353,8 +379,45 @@ class _SafetyLayer:
             c_mid = self._between(np.tile(pr, (n_sub - 1, 1)), qi_mid.reshape(-1, 2), qj_mid.reshape(-1, 2)).reshape(n_sub - 1, m)
             c_all = np.vstack([c0[rows][None], c_mid, c1[rows][None]])
             lower = 0.5 * (c_all[:-1] + c_all[1:] - bound[rows] / n_sub)
-            bad[rows] = np.any(lower < 0.5 * f[rows], axis=0) | np.any(c_mid < f[rows], axis=0)
+            sampled_bad = np.any(c_mid < f[rows], axis=0)
+            unproven = (lower < 0.5 * f[rows]) & ~sampled_bad[None, :]
+            bad[rows] = sampled_bad
+            if np.any(unproven):
+                # Pieces the bound cannot prove: bisected (a pair in near contact can only
+                # be proven to part over short pieces, since the bound assumes the closest
+                # points approach at the full motion speed).
+                k, r = np.nonzero(unproven)
+                row = rows[r]
+                t0 = k / n_sub
+                bad[np.unique(row[~self._bisect_proves(pairs[row], qi[row], qj[row], qi_next[row], qj_next[row], t0, 1.0 / n_sub, c_all[k, r], c_all[k + 1, r], bound[row] / n_sub, f[row])])] = True
         return bad
+
+    def _bisect_proves(
+        self, pairs: np.ndarray, qi: np.ndarray, qj: np.ndarray, qi_next: np.ndarray, qj_next: np.ndarray,
+        t0: np.ndarray, width: float, ca: np.ndarray, cb: np.ndarray, bound: np.ndarray, f: np.ndarray,
+    ) -> np.ndarray:
+        """Whether each piece ``[t0, t0 + width]`` of a step keeps the clearance ``>= f / 2``,
+        by bisection (exact clearances at the midpoints, at most ``bisections`` levels)."""
+        failed = np.zeros(len(pairs), dtype=bool)
+        piece = np.arange(len(pairs))  # the original piece each open sub-piece belongs to
+        for _ in range(self.bisections):
+            if len(piece) == 0:
+                break
+            width = 0.5 * width
+            tm = t0 + width
+            cm = self._between(
+                pairs[piece], qi[piece] + tm[:, None] * (qi_next[piece] - qi[piece]), qj[piece] + tm[:, None] * (qj_next[piece] - qj[piece]),
+            )
+            failed[piece[cm < 0.5 * f]] = True
+            half = 0.5 * bound
+            open_l = ~failed[piece] & (0.5 * (ca + cm - half) < 0.5 * f)
+            open_r = ~failed[piece] & (0.5 * (cm + cb - half) < 0.5 * f)
+            piece = np.concatenate([piece[open_l], piece[open_r]])
+            t0 = np.concatenate([t0[open_l], tm[open_r]])
+            ca, cb = np.concatenate([ca[open_l], cm[open_r]]), np.concatenate([cm[open_l], cb[open_r]])
+            bound, f = np.concatenate([half[open_l], half[open_r]]), np.concatenate([f[open_l], f[open_r]])
+        failed[piece] = True  # still open after the last level: not proven
+        return ~failed
 
     def apply(
         self, q: np.ndarray, q_next: np.ndarray, c_now: np.ndarray, rank: np.ndarray, defer_to: np.ndarray
@@ -625,8 +688,10 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             for who in list(routes):
                 if level[who] >= 2:
                     del routes[who], route_pos[who]
-                elif np.all(q[who] == routes[who][route_pos[who]]):
-                    route_pos[who] += 1  # a waypoint reached counts as progress
+                elif np.all(np.abs(q[who] - routes[who][route_pos[who]]) <= ROUTE_PASS * step_rad):
+                    # A waypoint passed (within half a step: the QP rounds the corners of the
+                    # reference, which runs through the waypoints) counts as progress.
+                    route_pos[who] += 1
                     last_progress[who] = last_best_ever[who] = step
                     if route_pos[who] == len(routes[who]):
                         del routes[who], route_pos[who]
@@ -669,6 +734,14 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             leader_home = has_rule & at_goal_final[np.maximum(wait_first, 0)]
             leader_home_since = np.where(leader_home, leader_home_since, step)
             release = np.all(q == wait_q, axis=1)
+            # A waiter still on its way to its waiting place when its neighbour arrives goes
+            # straight to its target if that path clears the neighbour there (the detour via
+            # the waiting place only served to let the neighbour through).
+            early = np.flatnonzero(leader_home & ~release & ~first_arrived)
+            if len(early):
+                ahead = wait_first[early]
+                clear = _path_clearance(scenario, early, ahead, q[early], goal_final[early], goal_final[ahead], step_rad)
+                release[early[clear >= settings.margin_mm]] = True
             if after_wait:
                 late = np.zeros(n, dtype=bool)
                 late[list(after_wait)] = True
@@ -695,6 +768,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
 
             goal_prev = goal
             ref = straight_path(q, goal, step_rad, H)
+            for who in routes:
+                ref[who] = route_path(q[who], routes[who], route_pos[who], step_rad, H)
             q_next = ref[:, 0].copy()
             new_plan = ref.copy()
             n_qp = 0
