@@ -6,8 +6,8 @@ import os
 import platform
 import subprocess
 import sys
-from pathlib import Path
 from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
 from typing import Any
 
 BASE_PACKAGES = ("fiberplan", "numpy", "scipy")

@@ -389,7 +389,11 @@ class _SafetyLayer:
                 k, r = np.nonzero(unproven)
                 row = rows[r]
                 t0 = k / n_sub
-                bad[np.unique(row[~self._bisect_proves(pairs[row], qi[row], qj[row], qi_next[row], qj_next[row], t0, 1.0 / n_sub, c_all[k, r], c_all[k + 1, r], bound[row] / n_sub, f[row])])] = True
+                proves = self._bisect_proves(
+                    pairs[row], qi[row], qj[row], qi_next[row], qj_next[row], t0, 1.0 / n_sub,
+                    c_all[k, r], c_all[k + 1, r], bound[row] / n_sub, f[row],
+                )
+                bad[np.unique(row[~proves])] = True
         return bad
 
     def _bisect_proves(
