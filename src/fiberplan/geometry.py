@@ -23,7 +23,7 @@ _EPS = 1e-12  # distances below this (mm) count as contact for gradients
 
 
 @functools.lru_cache(maxsize=32)
-def _capsule_tables(instrument: Instrument) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def capsule_tables(instrument: Instrument) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-capsule arrays ``(on_alpha, start_mm, end_mm)`` and the same-layer ``combos (K, 2)``
     with their radii sums ``(K,)``, computed once per instrument."""
     caps = instrument.capsules
@@ -51,7 +51,7 @@ def capsule_segments(
     Returns:
         ``(start, end)``, each of shape ``(..., N, C, 2)`` for the instrument's ``C`` capsules.
     """
-    on_alpha, start_mm, end_mm, _, _ = _capsule_tables(instrument)
+    on_alpha, start_mm, end_mm, _, _ = capsule_tables(instrument)
     a = joints[..., 0] + orient
     ab = a + joints[..., 1]
     cos_a, sin_a = np.cos(a), np.sin(a)
@@ -66,7 +66,7 @@ def capsule_segments(
     return start, end
 
 
-def _point_to_segment(
+def point_to_segment(
     px: np.ndarray, py: np.ndarray, ax: np.ndarray, ay: np.ndarray, dx: np.ndarray, dy: np.ndarray,
     nonzero: np.ndarray, safe_dd: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -106,15 +106,15 @@ def segment_distance(
     e = d2x * d2x + d2y * d2y
     a_nz, e_nz = a > 0.0, e > 0.0
     a_safe, e_safe = np.where(a_nz, a, 1.0), np.where(e_nz, e, 1.0)
-    dist, t = _point_to_segment(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)
+    dist, t = point_to_segment(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)
     s = np.zeros_like(dist)
-    d_c, t_c = _point_to_segment(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)
+    d_c, t_c = point_to_segment(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)
     better = d_c < dist
     dist, s, t = np.where(better, d_c, dist), np.where(better, 1.0, s), np.where(better, t_c, t)
-    d_c, s_c = _point_to_segment(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)
+    d_c, s_c = point_to_segment(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)
     better = d_c < dist
     dist, s, t = np.where(better, d_c, dist), np.where(better, s_c, s), np.where(better, 0.0, t)
-    d_c, s_c = _point_to_segment(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)
+    d_c, s_c = point_to_segment(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)
     better = d_c < dist
     dist, s, t = np.where(better, d_c, dist), np.where(better, s_c, s), np.where(better, 1.0, t)
     # Proper crossing: each segment's end points lie strictly on both sides of the other.
@@ -186,7 +186,7 @@ def pair_clearance(
     It is exact wherever the closest points are unique and the distance is positive.
     """
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    on_alpha, _, _, combos, combo_radii = _capsule_tables(instrument)
+    on_alpha, _, _, combos, combo_radii = capsule_tables(instrument)
     used, inverse = np.unique(pairs, return_inverse=True)
     if len(used) < joints.shape[-2]:  # capsules of the positioners the pairs name, only
         base_xy, orient, joints = base_xy[used], orient[used], joints[..., used, :]
@@ -236,7 +236,7 @@ def clearance_between(
     The same quantity as :func:`pair_clearance`, for explicit configurations of each pair
     (the verifier uses it to probe instants between samples).
     """
-    _, _, _, combos, combo_radii = _capsule_tables(instrument)
+    _, _, _, combos, combo_radii = capsule_tables(instrument)
     m = len(joints_i)
     start, end = capsule_segments(  # both sides in one call: these arrays are small
         instrument, np.concatenate([base_i, base_j]), np.concatenate([orient_i, orient_j]), np.concatenate([joints_i, joints_j])

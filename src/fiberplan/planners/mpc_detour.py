@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fiberplan.geometry import _capsule_tables, _point_to_segment, capsule_segments, clearance_between, segment_distance
+from fiberplan.geometry import capsule_segments, capsule_tables, clearance_between, point_to_segment, segment_distance
 from fiberplan.scenario import Scenario
 
 __all__ = ["PairResolution", "detour_route", "pair_resolution"]
@@ -80,7 +80,7 @@ class _Grid:
         start, end = capsule_segments(inst, scenario.base_xy[[i]], scenario.orient[[i]], self.configs[:, None, :])
         self.seg_start, self.seg_end = start[:, 0], end[:, 0]  # (cells, C, 2)
         self._memo: dict[tuple[int, float, float, float], np.ndarray] = {}  # (j, q_j, cutoff) -> clearances
-        ca = _capsule_tables(inst)[3][:, 0]
+        ca = capsule_tables(inst)[3][:, 0]
         a = self.seg_start[:, ca]  # (cells, K, 2): i's capsule of each same-layer combination
         d = self.seg_end[:, ca] - a
         dd = d[..., 0] ** 2 + d[..., 1] ** 2
@@ -106,7 +106,7 @@ class _Grid:
 
     def _clearance_each(self, others: np.ndarray, q_others: np.ndarray, cutoff: float) -> list[np.ndarray]:
         inst = self.scenario.instrument
-        _, _, _, combos, radii = _capsule_tables(inst)
+        _, _, _, combos, radii = capsule_tables(inst)
         ca, cb = combos[:, 0], combos[:, 1]
         res = []
         o_start, o_end = capsule_segments(inst, self.scenario.base_xy[others], self.scenario.orient[others], q_others)
@@ -115,7 +115,7 @@ class _Grid:
             # Lower bound: distance from j's base to i's capsule minus the farthest point of j's capsule from its base.
             base = self.scenario.base_xy[j]
             reach = np.maximum(np.linalg.norm(o_start[k] - base, axis=-1), np.linalg.norm(o_end[k] - base, axis=-1))[cb]
-            dist, _ = _point_to_segment(base[0], base[1], a[..., 0], a[..., 1], d[..., 0], d[..., 1], nz, safe)
+            dist, _ = point_to_segment(base[0], base[1], a[..., 0], a[..., 1], d[..., 0], d[..., 1], nz, safe)
             lb = (dist - reach - radii).min(axis=1)
             close = np.flatnonzero(lb < cutoff)
             c = lb
