@@ -3,7 +3,8 @@
 Long sets are measured in pieces (``--first-seed``, ``--budget-s``, one piece per core); this
 adds the extra file's runs of one cell (``kind``, ``N``) to the main file, for the seeds that
 every planner of the extra file finished and the main file lacks, recomputes the summaries and
-records the piece under ``merged_runs`` (its command, date and seeds)::
+records the piece under ``merged_runs`` (its command, date and seeds); a cell the main file
+lacks is added whole::
 
     python benchmarks/bench_mpc.py sdss --first-seed 3 --seeds 17 --out /tmp/sdss3.json
     python benchmarks/merge_mpc.py benchmarks/results/mpc_sdss.json /tmp/sdss3.json random 547
@@ -28,6 +29,15 @@ def merge(main: dict[str, Any], extra: dict[str, Any], kind: str, n: int) -> dic
         return {c["planner"]: c for c in doc["cells"] if c["kind"] == kind and c["n_positioners"] == n}
 
     cm, ce = cells(main), cells(extra)
+    if not cm and ce:
+        # A cell the main file lacks (another kind or N measured as a separate piece): added whole.
+        main["cells"].extend(ce.values())
+        for key, value in (("kinds", kind), ("sizes", n)):
+            if value not in main["parameters"][key]:
+                main["parameters"][key].append(value)
+        seeds = sorted(set.intersection(*({r["seed"] for r in c["runs"]} for c in ce.values())))
+        main.setdefault("merged_runs", []).append({"command": extra["command"], "date_utc": extra["date_utc"], "seeds": seeds, "new_cell": True})
+        return {p: (c["summary"]["seeds_run"], c["summary"]["success_rate_mean"]) for p, c in ce.items()}
     if not cm or set(cm) != set(ce):
         raise SystemExit(f"cells of {kind} N={n}: main has planners {sorted(cm)}, extra {sorted(ce)}")
     common = set.intersection(*({r["seed"] for r in c["runs"]} for c in ce.values()))
