@@ -33,7 +33,7 @@ from typing import Any
 from _machine import machine_info
 
 from fiberplan._atomic import atomic_path
-from fiberplan.compare import HARD_KIND, _add_gaps, aggregate, run_compare
+from fiberplan.compare import HARD_KIND, add_gaps, aggregate, run_compare
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -139,7 +139,7 @@ def replace_planner(out: Path, planner: str) -> dict[str, Any]:
         new = run_compare(par["instrument"], par["n_positioners"], [planner], [seed], kind=HARD_KIND, energy_gap=False).rows[0]
         by_planner = {r["planner"]: r for r in rows if r["seed"] == seed and r["planner"] != planner}
         by_planner[planner] = new
-        _add_gaps(by_planner)
+        add_gaps(by_planner)
         rows = [r for r in rows if not (r["seed"] == seed and r["planner"] == planner)] + [new]
         print(f"{par['instrument']} {par['n_positioners']} seed {seed}: {planner} success {new['success_rate']:.3f} "
               f"gap {new['gap_to_central']}", flush=True)

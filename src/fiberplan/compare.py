@@ -281,7 +281,7 @@ def run_compare(
             seed_rows[name] = row
             if progress is not None:
                 progress(f"{name} seed {seed}")
-        _add_gaps(seed_rows)
+        add_gaps(seed_rows)
         if energy_gap and CENTRAL in names:
             _add_energy_gaps(scenario, seed_rows, done, settings.get(CENTRAL))
         rows.extend(seed_rows[name] for name in names)
@@ -297,7 +297,8 @@ def run_compare(
     return CompareResult(rows=rows, aggregates=aggregate(rows), parameters=parameters)
 
 
-def _add_gaps(seed_rows: dict[str, dict[str, Any]]) -> None:
+def add_gaps(seed_rows: dict[str, dict[str, Any]]) -> None:
+    """Set each row's gaps to the ``central`` row of the same scenario (planner -> row), in place."""
     central = seed_rows.get(CENTRAL)
     if central is None or not central["clean"]:
         return
