@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from _machine import machine_info
 
+from fiberplan._atomic import atomic_path
 from fiberplan.generate import make_scenario
 from fiberplan.metrics import summarize
 from fiberplan.planners import make_settings, plan
@@ -152,8 +153,8 @@ def main(argv: list[str] | None = None) -> int:
         }[args.set],
         "cells": cells,
     }
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(document, indent=1, default=str) + "\n", encoding="utf-8")
+    with atomic_path(out) as tmp:  # a complete file or none
+        tmp.write_text(json.dumps(document, indent=1, default=str) + "\n", encoding="utf-8")
     print(f"wrote {out}")
     return 0
 
