@@ -165,7 +165,7 @@ def _dnf_cell_from_dnf_benchmark(seeds: list[int], n: int) -> dict[str, Any] | N
     return None
 
 
-def _write(path: Path, document: dict[str, Any]) -> None:
+def write_result(path: Path, document: dict[str, Any]) -> None:
     """Write a result file atomically: an interrupted benchmark never leaves it truncated."""
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(document, indent=1, default=float) + "\n")
@@ -264,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
                     cell["runs"].append(record)
                     cell["summary"] = _agg(cell["runs"])
                     document["wall_s"] = time.perf_counter() - t_start
-                    _write(out_path, document)
+                    write_result(out_path, document)
                     print(
                         f"{label:13s} {kind:7s} N={n:5d} seed={seed:3d} success={record['success_rate']:.4f} "
                         f"collisions={record['collisions']} T/LB={record['makespan_over_bound']:.2f} "
@@ -272,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
                         flush=True,
                     )
     document["wall_s"] = time.perf_counter() - t_start
-    _write(out_path, document)
+    write_result(out_path, document)
     return 0
 
 

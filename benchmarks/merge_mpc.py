@@ -61,7 +61,7 @@ def main() -> None:
     args = parser.parse_args()
     doc = json.loads(args.main.read_text())
     summary = merge(doc, json.loads(args.extra.read_text()), args.kind, args.n)
-    bench_mpc._write(args.main, doc)
+    bench_mpc.write_result(args.main, doc)
     print({p: (s, round(r, 4)) for p, (s, r) in summary.items()})
 
 
