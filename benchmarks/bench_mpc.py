@@ -98,7 +98,7 @@ def run_one(instrument: str, n: int, kind: str, seed: int, planner: str, overrid
     return record
 
 
-def _agg(runs: list[dict[str, Any]]) -> dict[str, Any]:
+def aggregate_runs(runs: list[dict[str, Any]]) -> dict[str, Any]:
     def col(key: str) -> np.ndarray:
         return np.array([r[key] for r in runs if key in r and r[key] is not None], dtype=float)
 
@@ -262,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
                 for cell, (label, planner, over) in zip(cells, variants, strict=True):
                     record = run_one(spec["instrument"], n, kind, seed, planner, over)
                     cell["runs"].append(record)
-                    cell["summary"] = _agg(cell["runs"])
+                    cell["summary"] = aggregate_runs(cell["runs"])
                     document["wall_s"] = time.perf_counter() - t_start
                     write_result(out_path, document)
                     print(

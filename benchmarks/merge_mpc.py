@@ -30,12 +30,17 @@ def merge(main: dict[str, Any], extra: dict[str, Any], kind: str, n: int) -> dic
 
     cm, ce = cells(main), cells(extra)
     if not cm and ce:
-        # A cell the main file lacks (another kind or N measured as a separate piece): added whole.
+        # A cell the main file lacks (another kind or N measured as a separate piece): added
+        # whole, for the seeds every planner finished (a piece stopped mid-seed may have one
+        # planner's run more).
+        seeds = sorted(set.intersection(*({r["seed"] for r in c["runs"]} for c in ce.values())))
+        for cell in ce.values():
+            cell["runs"] = [r for r in cell["runs"] if r["seed"] in seeds]
+            cell["summary"] = bench_mpc.aggregate_runs(cell["runs"])
         main["cells"].extend(ce.values())
         for key, value in (("kinds", kind), ("sizes", n)):
             if value not in main["parameters"][key]:
                 main["parameters"][key].append(value)
-        seeds = sorted(set.intersection(*({r["seed"] for r in c["runs"]} for c in ce.values())))
         main.setdefault("merged_runs", []).append({"command": extra["command"], "date_utc": extra["date_utc"], "seeds": seeds, "new_cell": True})
         return {p: (c["summary"]["seeds_run"], c["summary"]["success_rate_mean"]) for p, c in ce.items()}
     if not cm or set(cm) != set(ce):
@@ -47,7 +52,7 @@ def merge(main: dict[str, Any], extra: dict[str, Any], kind: str, n: int) -> dic
         new = [r for r in ce[planner]["runs"] if r["seed"] in common and r["seed"] not in have]
         added |= {r["seed"] for r in new}
         cell["runs"] = sorted(cell["runs"] + new, key=lambda r: r["seed"])
-        cell["summary"] = bench_mpc._agg(cell["runs"])
+        cell["summary"] = bench_mpc.aggregate_runs(cell["runs"])
     main.setdefault("merged_runs", []).append({"command": extra["command"], "date_utc": extra["date_utc"], "seeds": sorted(added)})
     return {p: (c["summary"]["seeds_run"], c["summary"]["success_rate_mean"]) for p, c in cm.items()}
 
