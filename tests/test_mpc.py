@@ -279,12 +279,13 @@ def test_waiting_rule_orders_a_pair_whose_targets_interlock():
 
 
 def test_run_stops_when_nothing_can_progress_and_loses_nothing():
-    # DESI seed 9, N = 500 leaves a positioner stuck; the stop rule ends the run early, and
-    # planning on to the time limit reaches no more targets (here one fewer: the stuck one
-    # pushes an arrived neighbour off its target).
+    # DESI seed 9, N = 500 without the start schedule leaves a positioner stuck (with it,
+    # every one arrives); the stop rule ends the run early, and planning on to the time limit
+    # reaches no more targets (here one fewer: the stuck one pushes an arrived neighbour off
+    # its target).
     sc = make_scenario("desi", 500, "random", 9)
-    stopped = plan(sc, "mpc")
-    full = plan(sc, "mpc", {"stop_after_stalled_windows": 0})
+    stopped = plan(sc, "mpc", {"start_schedule": False})
+    full = plan(sc, "mpc", {"start_schedule": False, "stop_after_stalled_windows": 0})
     assert stopped.stats["stopped_stalled"] and not full.stats["stopped_stalled"]
     assert stopped.stats["n_steps"] < full.stats["n_steps"]
     _check_safe(stopped)

@@ -94,12 +94,19 @@ def test_pair_resolution_routes_are_clear_of_the_other(pair):
 
 def test_detours_resolve_a_pair_that_deadlocks_without_them(pair):
     sc, _, _ = pair
-    without = plan(sc, "mpc", {"detours": False})
+    reactive = {"start_schedule": False}  # the loop alone, as on MOONS and SDSS
+    without = plan(sc, "mpc", {**reactive, "detours": False})
     assert np.all(without.outcome == "deadlocked")  # the failure the detours exist for
-    result = plan(sc, "mpc")
+    result = plan(sc, "mpc", reactive)
     assert np.all(result.outcome == "reached")
     assert result.stats["pair_resolutions"] >= 1
     report = verify(sc, result.trajectory)
+    assert report.n_collisions == 0 and not report.limit_violations
+    # DESI's start schedule orders this pair before either moves: no deadlock to resolve.
+    scheduled = plan(sc, "mpc", {"start_schedule": True, "detours": False})
+    assert np.all(scheduled.outcome == "reached")
+    assert scheduled.stats["schedule_delayed"] == 1 and scheduled.stats["deadlocks_detected"] == 0
+    report = verify(sc, scheduled.trajectory)
     assert report.n_collisions == 0 and not report.limit_violations
 
 

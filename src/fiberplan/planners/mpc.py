@@ -35,6 +35,7 @@ At every control step (``formulations/mpc.md``):
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +48,7 @@ from fiberplan.planners import ProgressCallback
 from fiberplan.planners.mpc_detour import PairResolution, detour_route, pair_resolution
 from fiberplan.planners.mpc_exec import QpBatch, make_executor
 from fiberplan.planners.mpc_qp import STATUS_FAILED, STATUS_INACCURATE, STATUS_SOLVED, OsqpOptions, QpLayout, QpWeights
+from fiberplan.planners.mpc_schedule import start_schedule
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult, Trajectory
 
@@ -88,6 +90,11 @@ class MpcSettings:
             before it retreats.
         detour_max: detour routes planned per positioner at most.
         detour_after_deadlocks: a positioner found deadlocked this many times gets a detour.
+        start_schedule: before the first step, give positioners start delays so that their
+            delayed straight moves keep ``margin_mm`` pairwise where a delay can
+            (``mpc_schedule.start_schedule``); each one's reference starts after its delay.
+        schedule_delay_steps: granularity of the start delays (control steps).
+        schedule_slack: every delayed move must end by this many times the longest move.
         executor: ``sequential`` or ``parallel``.
         workers: processes of the parallel executor (the planning process counts as one).
         qp_solver: ``osqp`` (persistent workspaces, the fast path) or a qpsolvers backend name.
@@ -119,6 +126,9 @@ class MpcSettings:
     detours: bool = True
     detour_max: int = 3
     detour_after_deadlocks: int = 2
+    start_schedule: bool = False
+    schedule_delay_steps: int = 4
+    schedule_slack: float = 1.2
     executor: str = "sequential"
     workers: int = 2
     qp_solver: str = "osqp"
@@ -132,11 +142,15 @@ class MpcSettings:
         The control step is the instrument's ``control_dt_s``; margins and the conflict
         radius are multiples of the largest distance any capsule point moves in one step
         (``step_motion_mm``), so slow (MOONS) and fast (DESI) motors get the same behaviour
-        per step.
+        per step. An instrument file may override any setting in a ``[planner_defaults.mpc]``
+        table (DESI's turns the start schedule on: measured to help there, not on MOONS).
+
+        Raises:
+            PlannerError: the ``[planner_defaults.mpc]`` table names an unknown setting.
         """
         dt = instrument.control_dt_s
         step_mm = _step_motion_mm(instrument, dt)
-        return cls(
+        defaults = cls(
             dt_s=dt,
             margin_mm=round(1.2 * step_mm, 4),
             priority_margin_mm=round(0.4 * step_mm, 4),
@@ -144,6 +158,15 @@ class MpcSettings:
             conflict_radius_mm=round(4.0 * step_mm, 4),
             max_duration_extra_s=round(200 * dt, 4),
         )
+        overrides = dict(instrument.planner_defaults.get("mpc", {}))
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(overrides) - known)
+        if unknown:
+            raise PlannerError(
+                f"instrument {instrument.name!r}: [planner_defaults.mpc] has no setting {unknown[0]!r}; "
+                f"known settings are {', '.join(sorted(known))}"
+            )
+        return dataclasses.replace(defaults, **overrides)
 
     def __post_init__(self) -> None:
         positive = {
@@ -177,9 +200,12 @@ class MpcSettings:
         for name, value in (("horizon_steps", self.horizon_steps), ("deadlock_window_steps", self.deadlock_window_steps),
                             ("workers", self.workers), ("osqp_max_iter", self.osqp_max_iter),
                             ("max_neighbour_constraints", self.max_neighbour_constraints), ("detour_max", self.detour_max),
-                            ("detour_after_deadlocks", self.detour_after_deadlocks)):
+                            ("detour_after_deadlocks", self.detour_after_deadlocks),
+                            ("schedule_delay_steps", self.schedule_delay_steps)):
             if int(value) != value or value < 1:
                 raise PlannerError(f"mpc: {name} must be an integer >= 1, found {value}")
+        if not (np.isfinite(self.schedule_slack) and self.schedule_slack >= 1):
+            raise PlannerError(f"mpc: schedule_slack must be a finite number >= 1, found {self.schedule_slack}")
         if self.deadlock_progress_fraction >= 1:
             raise PlannerError(f"mpc: deadlock_progress_fraction must be < 1, found {self.deadlock_progress_fraction}")
         if self.max_input_change is not None and not (self.max_input_change > 0):
@@ -529,12 +555,18 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     bound_s = float(move[scenario.has_target].max()) if np.any(scenario.has_target) else 0.0
     max_steps = int(np.ceil((settings.max_duration_factor * bound_s + settings.max_duration_extra_s) / h))
     window = settings.deadlock_window_steps
+    # Start schedule (mpc_schedule): each positioner's reference starts after its delay.
+    schedule_t0 = time.perf_counter()
+    schedule = start_schedule(scenario, step_rad, settings.margin_mm, settings.schedule_delay_steps, settings.schedule_slack) \
+        if settings.start_schedule else None
+    schedule_wall_s = time.perf_counter() - schedule_t0
+    start_step = schedule.delay_steps if schedule is not None else np.zeros(n, dtype=np.int64)
 
     q = scenario.start.copy()
     goal = goal_final.copy()
     goal_prev = goal
     c_now = safety.clearance(q, pairs)
-    plan = straight_path(q, goal, step_rad, H)  # published plans (what neighbours see)
+    plan = straight_path(q, np.where((start_step > 0)[:, None], q, goal), step_rad, H)  # published plans (what neighbours see)
     own_plan = plan.copy()  # linearisation points of each positioner's own QP
     v_prev = np.zeros((n, 2))
     history = [q.copy()]
@@ -590,7 +622,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # A waiter counts as progressing while the neighbour it waits for is on its way.
             first = np.maximum(wait_first, 0)
             first_moving = ~at_goal_final[first] & (step - last_best_ever[first] < settings.stop_after_stalled_windows * window)
-            last_best_ever = np.where(better | (waiting & first_moving), step, last_best_ever)
+            unstarted = step < start_step  # waiting for its scheduled start
+            last_best_ever = np.where(better | (waiting & first_moving) | unstarted, step, last_best_ever)
 
             # --- conflict detection (depends only on the configuration and the published plans).
             # Two positioners holding still at their goals need no QP: nothing changes.
@@ -607,7 +640,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # Stalled: the best time-to-go has not improved for a window.
             improved = ttg_final < best_ttg - progress_eps
             best_ttg = np.where(improved, ttg_final, best_ttg)
-            last_progress = np.where(improved | at_goal_final | waiting, step, last_progress)
+            last_progress = np.where(improved | at_goal_final | waiting | unstarted, step, last_progress)
             best_ttg = np.where(waiting, ttg_final, best_ttg)
             stalled = (step - last_progress >= window) & ~at_goal_final
             new_dead = stalled & (level == 0)
@@ -723,6 +756,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             fold = yielding | (level == 2)
             ever_yielded |= yielding
             goal = goal_final.copy()
+            goal[unstarted] = q[unstarted]
             # Folding (yielders and level-2 retreats) moves beta to the datum with alpha held.
             # Letting alpha head for its target meanwhile measured no better on DESI (N = 500
             # failures, seeds 0-11 / 36-47: 17 / 16 held, 16 / 19 not) and worse on MOONS
@@ -873,6 +907,10 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         "detours_not_found": n_detour_failed,
         "n_slots": n_slots,
         "stopped_stalled": stopped_stalled,
+        "schedule_delayed": int(np.count_nonzero(start_step)),
+        "schedule_unplaced": len(schedule.unplaced) if schedule is not None else 0,
+        "schedule_swaps": schedule.swaps if schedule is not None else 0,
+        "schedule_wall_s": schedule_wall_s,
     }
     return PlanResult(
         scenario=scenario,

@@ -1,0 +1,168 @@
+"""Start schedule of the ``mpc`` planner: prioritised start delays along straight moves.
+
+Before the first control step, positioners in decreasing order of their move time each take
+the smallest start delay (a multiple of ``delay_steps``) for which their straight full-speed
+move, so delayed, keeps at least ``margin_mm`` (capped by the pair's clearance with both at
+their starts and with both at their targets) from every neighbour already scheduled, moving as
+scheduled; every move must end by ``slack`` x the longest move. This is path-velocity
+decomposition with priorities: it orders the pairs whose targets impose an order (one's
+target lies on the other's path) before anyone moves, where the reactive loop would find
+them only as deadlocks a window later.
+
+A positioner that no delay fits swaps with the neighbours in its way: it takes the delay with
+the fewest conflicts and those neighbours are scheduled again after it; if one of them then
+fits nowhere the swap is undone and it starts at once (``unplaced``: the reactive loop and its
+deadlock rules handle it, as without a schedule).
+
+The schedule only sets when each positioner's reference starts: collision avoidance stays
+with the QPs and the safety layer. Clearances are checked every ``stride`` steps. See
+``formulations/mpc.md`` (Start schedule).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fiberplan.geometry import capsule_segments, capsule_tables, clearance_between, segment_distance
+from fiberplan.scenario import Scenario
+
+__all__ = ["StartSchedule", "start_schedule"]
+
+
+@dataclass(frozen=True)
+class StartSchedule:
+    """Start delays (control steps) per positioner, and how they were found."""
+
+    delay_steps: np.ndarray
+    unplaced: np.ndarray
+    swaps: int
+
+
+def _straight_moves(start: np.ndarray, target: np.ndarray, step_rad: np.ndarray, n_steps: int) -> np.ndarray:
+    """Joints ``(N, n_steps + 1, 2)`` of every straight full-speed move, step 0 = start."""
+    k = np.arange(n_steps + 1)[None, :, None]
+    return start[:, None, :] + np.clip((target - start)[:, None, :], -k * step_rad, k * step_rad)
+
+
+def start_schedule(
+    scenario: Scenario, step_rad: np.ndarray, margin_mm: float, delay_steps: int = 4, slack: float = 1.2, stride: int = 2,
+    max_options: int = 64,
+) -> StartSchedule:
+    """Start delays such that the delayed straight moves keep their margins pairwise (greedy).
+
+    Args:
+        scenario: the scenario (starts, targets, neighbour pairs).
+        step_rad: joint motion per control step at full speed (rad).
+        margin_mm: clearance to keep, capped per pair at 0.9 x its clearance at the starts
+            and at the targets (a pair that starts or ends closer could not keep it).
+        delay_steps: granularity of the delays (control steps); coarser where a positioner
+            would otherwise have more than ``max_options`` delays to try.
+        slack: every delayed move must end by ``slack`` x the longest move.
+        stride: clearances are checked every ``stride`` steps.
+
+    Returns:
+        The delays; ``unplaced`` lists the positioners no delay fitted (delay 0).
+    """
+    inst = scenario.instrument
+    n = scenario.n_positioners
+    pairs = scenario.pairs
+    delay = np.zeros(n, dtype=np.int64)
+    if n == 0 or len(pairs) == 0:
+        return StartSchedule(delay, np.zeros(0, dtype=np.int64), 0)
+    move = np.ceil(np.max(np.abs(scenario.target - scenario.start) / step_rad, axis=1) - 1e-9).astype(np.int64)
+    horizon = int(np.ceil(slack * move.max()))
+    path = _straight_moves(scenario.start, scenario.target, step_rad, horizon)
+    times = np.unique(np.append(np.arange(0, horizon + 1, stride), horizon))
+    base, orient = scenario.base_xy, scenario.orient
+    # Capsule segments of every move at every step, computed once: (N, steps, C, 2) each.
+    seg_start, seg_end = capsule_segments(inst, base, orient, np.swapaxes(path, 0, 1))
+    seg_start, seg_end = np.swapaxes(seg_start, 0, 1), np.swapaxes(seg_end, 0, 1)
+    _, _, _, combos, combo_radii = capsule_tables(inst)
+    ca, cb = combos[:, 0], combos[:, 1]
+
+    def pair_min(i: np.ndarray, qi: np.ndarray, j: np.ndarray, qj: np.ndarray) -> np.ndarray:
+        return clearance_between(inst, base[i], orient[i], qi, base[j], orient[j], qj).min(axis=-1)
+
+    a, b = pairs[:, 0], pairs[:, 1]
+    floor = np.minimum(margin_mm, 0.9 * np.minimum(pair_min(a, scenario.start[a], b, scenario.start[b]),
+                                                   pair_min(a, scenario.target[a], b, scenario.target[b])))
+    # Pairs whose undelayed moves keep their margin need no check while both start at once.
+    k = len(times)
+    clean = pair_min(np.repeat(a, k), path[a][:, times].reshape(-1, 2), np.repeat(b, k), path[b][:, times].reshape(-1, 2))
+    clean = clean.reshape(-1, k).min(axis=1) >= floor
+    nb_of: list[list[tuple[int, int]]] = [[] for _ in range(n)]
+    for r, (p, q) in enumerate(pairs.tolist()):
+        nb_of[p].append((q, r))
+        nb_of[q].append((p, r))
+    nb = [np.array([x[0] for x in lst], dtype=np.int64) for lst in nb_of]
+    nb_row = [np.array([x[1] for x in lst], dtype=np.int64) for lst in nb_of]
+
+    def fits(i: int, delays: np.ndarray, js: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(D, J): whether ``i`` delayed by each of ``delays`` keeps its margin to each ``j``."""
+        d_n, j_n = len(delays), len(js)
+        # Only while one of them moves: before and after, both hold (the ends are sampled).
+        t_lo = min(int(delays.min()), int(delay[js].min()))
+        t_hi = max(int(delays.max()) + int(move[i]), int((delay[js] + move[js]).max()))
+        t = np.unique(np.concatenate([times[(times >= t_lo) & (times <= t_hi)], [t_lo, min(t_hi, horizon)]]))
+        m = len(t)
+        ti = np.clip(t[None, :] - delays[:, None], 0, horizon)  # (D, K)
+        tj = np.clip(t[None, :] - delay[js][:, None], 0, horizon)  # (J, K)
+        si, ei = seg_start[i][ti][:, None, :, ca], seg_end[i][ti][:, None, :, ca]  # (D, 1, K, combos, 2)
+        sj, ej = seg_start[js[:, None], tj][None, :, :, cb], seg_end[js[:, None], tj][None, :, :, cb]  # (1, J, K, combos, 2)
+        shape = (d_n, j_n, m, len(ca), 2)
+        dist = segment_distance(np.broadcast_to(si, shape), np.broadcast_to(ei, shape), np.broadcast_to(sj, shape), np.broadcast_to(ej, shape))[0]
+        c = (dist - combo_radii).min(axis=(2, 3))
+        return c >= floor[rows][None, :]
+
+    done = np.zeros(n, dtype=bool)
+
+    def place(i: int) -> tuple[int | None, np.ndarray, np.ndarray, np.ndarray]:
+        """Smallest fitting delay of ``i`` against the scheduled neighbours, else ``None``."""
+        sel = done[nb[i]]
+        js, rows = nb[i][sel], nb_row[i][sel]
+        # No delay: only pairs with a delayed neighbour or a conflict between the undelayed
+        # moves need a check.
+        check = (delay[js] != 0) | ~clean[rows]
+        if not np.any(check) or fits(i, np.zeros(1, dtype=np.int64), js[check], rows[check]).all():
+            return 0, js, np.zeros(0, dtype=np.int64), np.zeros((0, 0), dtype=bool)
+        room = max(0, horizon - int(move[i]))
+        options = np.arange(0, room + 1, max(delay_steps, int(np.ceil(room / max_options))))
+        ok = np.zeros((0, len(js)), dtype=bool)
+        for lo in range(0, len(options), 8):  # a few delays at a time: most fit early
+            part = fits(i, options[lo:lo + 8], js, rows)
+            ok = np.concatenate([ok, part])
+            good = np.flatnonzero(part.all(axis=1))
+            if len(good):
+                return int(options[lo + good[0]]), js, options, ok
+        return None, js, options, ok
+
+    order = np.lexsort((np.arange(n), -move))
+    unplaced = np.zeros(n, dtype=bool)
+    swaps = 0
+    for i in order.tolist():
+        d, js, options, ok = place(i)
+        if d is None:
+            # Swap: i takes the delay with the fewest conflicts; those neighbours go after it.
+            best = int(np.argmin((~ok).sum(axis=1)))
+            others = js[~ok[best]]
+            saved = delay[others].copy(), unplaced[others].copy()
+            delay[i], done[i] = options[best], True
+            done[others] = False
+            placed = True
+            for j in others[np.lexsort((others, -move[others]))].tolist():
+                dj = place(j)[0]
+                if dj is None:
+                    placed = False
+                    break
+                delay[j], done[j] = dj, True
+            done[others] = True
+            if placed:
+                swaps += 1
+                continue
+            delay[others], unplaced[others] = saved
+            d = 0
+            unplaced[i] = True
+        delay[i], done[i] = d, True
+    return StartSchedule(delay, np.flatnonzero(unplaced), swaps)
