@@ -30,6 +30,10 @@ At every control step (``formulations/mpc.md``):
    priority.
 5. The run ends when all are at their targets, when nothing can progress any more
    (``stop_after_stalled_windows``), or at the time limit.
+
+Before the first step (on by default for DESI), every positioner gets a start delay such that
+the delayed straight moves keep their margins pairwise where a delay can
+(:mod:`fiberplan.planners.mpc_schedule`); it holds until then.
 """
 
 from __future__ import annotations

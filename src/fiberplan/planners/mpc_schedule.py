@@ -78,20 +78,24 @@ def start_schedule(
     base, orient = scenario.base_xy, scenario.orient
     # Capsule segments of every move at every step, computed once: (N, steps, C, 2) each.
     seg_start, seg_end = capsule_segments(inst, base, orient, np.swapaxes(path, 0, 1))
-    seg_start, seg_end = np.swapaxes(seg_start, 0, 1), np.swapaxes(seg_end, 0, 1)
+    seg_start, seg_end = np.ascontiguousarray(np.swapaxes(seg_start, 0, 1)), np.ascontiguousarray(np.swapaxes(seg_end, 0, 1))
     _, _, _, combos, combo_radii = capsule_tables(inst)
     ca, cb = combos[:, 0], combos[:, 1]
 
     def pair_min(i: np.ndarray, qi: np.ndarray, j: np.ndarray, qj: np.ndarray) -> np.ndarray:
         return clearance_between(inst, base[i], orient[i], qi, base[j], orient[j], qj).min(axis=-1)
 
+    def moving_min(i: np.ndarray, ti: np.ndarray, j: np.ndarray, tj: np.ndarray) -> np.ndarray:
+        """Clearance of ``i`` after ``ti`` steps of its move to ``j`` after ``tj`` (index arrays, broadcast)."""
+        dist = segment_distance(seg_start[i, ti][..., ca, :], seg_end[i, ti][..., ca, :],
+                                seg_start[j, tj][..., cb, :], seg_end[j, tj][..., cb, :])[0]
+        return (dist - combo_radii).min(axis=-1)
+
     a, b = pairs[:, 0], pairs[:, 1]
     floor = np.minimum(margin_mm, 0.9 * np.minimum(pair_min(a, scenario.start[a], b, scenario.start[b]),
                                                    pair_min(a, scenario.target[a], b, scenario.target[b])))
     # Pairs whose undelayed moves keep their margin need no check while both start at once.
-    k = len(times)
-    clean = pair_min(np.repeat(a, k), path[a][:, times].reshape(-1, 2), np.repeat(b, k), path[b][:, times].reshape(-1, 2))
-    clean = clean.reshape(-1, k).min(axis=1) >= floor
+    clean = moving_min(a[:, None], times[None, :], b[:, None], times[None, :]).min(axis=1) >= floor
     nb_of: list[list[tuple[int, int]]] = [[] for _ in range(n)]
     for r, (p, q) in enumerate(pairs.tolist()):
         nb_of[p].append((q, r))
@@ -101,19 +105,13 @@ def start_schedule(
 
     def fits(i: int, delays: np.ndarray, js: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """(D, J): whether ``i`` delayed by each of ``delays`` keeps its margin to each ``j``."""
-        d_n, j_n = len(delays), len(js)
         # Only while one of them moves: before and after, both hold (the ends are sampled).
         t_lo = min(int(delays.min()), int(delay[js].min()))
         t_hi = max(int(delays.max()) + int(move[i]), int((delay[js] + move[js]).max()))
         t = np.unique(np.concatenate([times[(times >= t_lo) & (times <= t_hi)], [t_lo, min(t_hi, horizon)]]))
-        m = len(t)
-        ti = np.clip(t[None, :] - delays[:, None], 0, horizon)  # (D, K)
-        tj = np.clip(t[None, :] - delay[js][:, None], 0, horizon)  # (J, K)
-        si, ei = seg_start[i][ti][:, None, :, ca], seg_end[i][ti][:, None, :, ca]  # (D, 1, K, combos, 2)
-        sj, ej = seg_start[js[:, None], tj][None, :, :, cb], seg_end[js[:, None], tj][None, :, :, cb]  # (1, J, K, combos, 2)
-        shape = (d_n, j_n, m, len(ca), 2)
-        dist = segment_distance(np.broadcast_to(si, shape), np.broadcast_to(ei, shape), np.broadcast_to(sj, shape), np.broadcast_to(ej, shape))[0]
-        c = (dist - combo_radii).min(axis=(2, 3))
+        ti = np.clip(t[None, None, :] - delays[:, None, None], 0, horizon)  # (D, 1, K)
+        tj = np.clip(t[None, None, :] - delay[js][None, :, None], 0, horizon)  # (1, J, K)
+        c = moving_min(np.int64(i), ti, js[None, :, None], tj).min(axis=2)  # (D, J)
         return c >= floor[rows][None, :]
 
     done = np.zeros(n, dtype=bool)
