@@ -87,6 +87,8 @@ def test_defaults_scale_with_the_instrument():
         ({"deadlock_progress_fraction": 1.5}, "deadlock_progress_fraction"),
         ({"osqp_eps": "nan"}, "'osqp_eps' must be a number, found 'nan'"),
         ({"wait_rules": 1}, "'wait_rules' must be true or false"),
+        ({"schedule_slack": 0.9}, "schedule_slack"),
+        ({"schedule_delay_steps": 0}, "schedule_delay_steps"),
     ],
 )
 def test_bad_settings_are_rejected(override, match):
@@ -377,3 +379,15 @@ def test_safety_layer_bisection_never_passes_a_step_that_dips_below_its_floor():
         c = layer._between(np.repeat(pair, len(t), axis=0), path[:, 0], path[:, 1])
         assert c.min() >= 0.5 * f and c[-1] >= f
     assert passed > 10
+
+
+def test_instrument_file_sets_mpc_defaults():
+    import dataclasses
+
+    desi = load_instrument("desi")
+    assert MpcSettings.for_instrument(desi).start_schedule  # desi.toml: [planner_defaults.mpc]
+    assert not MpcSettings.for_instrument(load_instrument("moons")).start_schedule
+    assert not MpcSettings.for_instrument(load_instrument("sdss")).start_schedule
+    wrong = dataclasses.replace(desi, planner_defaults={"mpc": {"start_shedule": True}})
+    with pytest.raises(PlannerError, match="start_shedule"):
+        MpcSettings.for_instrument(wrong)

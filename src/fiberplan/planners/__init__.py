@@ -37,6 +37,23 @@ class PlannerFunction(Protocol):
     def __call__(self, scenario: Scenario, settings: Any, progress: ProgressCallback | None = None) -> PlanResult: ...
 
 
+def instrument_defaults(instrument: Any, table: str, defaults: Any) -> Any:
+    """``defaults`` (a settings dataclass) with the instrument file's ``[planner_defaults.<table>]`` applied.
+
+    Raises:
+        PlannerError: the table names a setting the dataclass does not have.
+    """
+    overrides = dict(instrument.planner_defaults.get(table, {}))
+    known = {f.name for f in dataclasses.fields(defaults)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise PlannerError(
+            f"instrument {instrument.name!r}: [planner_defaults.{table}] has no setting {unknown[0]!r}; "
+            f"known settings are {', '.join(sorted(known))}"
+        )
+    return dataclasses.replace(defaults, **overrides)
+
+
 def planner_names() -> list[str]:
     """Names of the registered planners."""
     return sorted(_PLANNERS)

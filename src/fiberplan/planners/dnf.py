@@ -44,7 +44,7 @@ from fiberplan.errors import PlannerError
 from fiberplan.geometry import clearance_between, pair_clearance
 from fiberplan.instrument import Instrument
 from fiberplan.kinematics import fiber_jacobian, fiber_positions, move_times
-from fiberplan.planners import ProgressCallback
+from fiberplan.planners import ProgressCallback, instrument_defaults
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult, Trajectory
 
@@ -170,15 +170,7 @@ class DnfSettings:
             retreat_s=half_turn / 3.0,
             progress_mm=instrument.tolerance_mm,
         )
-        overrides = dict(instrument.planner_defaults.get("dnf", {}))
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(overrides) - known)
-        if unknown:
-            raise PlannerError(
-                f"instrument {instrument.name!r}: [planner_defaults.dnf] has no setting {unknown[0]!r}; "
-                f"known settings are {', '.join(sorted(known))}"
-            )
-        return dataclasses.replace(defaults, **overrides)
+        return instrument_defaults(instrument, "dnf", defaults)
 
     def __post_init__(self) -> None:
         positive = {

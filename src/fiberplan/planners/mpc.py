@@ -48,7 +48,7 @@ from fiberplan.errors import PlannerError
 from fiberplan.geometry import clearance_between, pair_clearance
 from fiberplan.instrument import Instrument
 from fiberplan.kinematics import fiber_positions
-from fiberplan.planners import ProgressCallback
+from fiberplan.planners import ProgressCallback, instrument_defaults
 from fiberplan.planners.mpc_detour import PairResolution, detour_route, pair_resolution
 from fiberplan.planners.mpc_exec import QpBatch, make_executor
 from fiberplan.planners.mpc_qp import STATUS_FAILED, STATUS_INACCURATE, STATUS_SOLVED, OsqpOptions, QpLayout, QpWeights
@@ -162,15 +162,7 @@ class MpcSettings:
             conflict_radius_mm=round(4.0 * step_mm, 4),
             max_duration_extra_s=round(200 * dt, 4),
         )
-        overrides = dict(instrument.planner_defaults.get("mpc", {}))
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(overrides) - known)
-        if unknown:
-            raise PlannerError(
-                f"instrument {instrument.name!r}: [planner_defaults.mpc] has no setting {unknown[0]!r}; "
-                f"known settings are {', '.join(sorted(known))}"
-            )
-        return dataclasses.replace(defaults, **overrides)
+        return instrument_defaults(instrument, "mpc", defaults)
 
     def __post_init__(self) -> None:
         positive = {

@@ -48,7 +48,7 @@ def _straight_moves(start: np.ndarray, target: np.ndarray, step_rad: np.ndarray,
 
 def start_schedule(
     scenario: Scenario, step_rad: np.ndarray, margin_mm: float, delay_steps: int = 4, slack: float = 1.2, stride: int = 2,
-    max_options: int = 64,
+    max_options: int = 64, swap_tries: int = 1,
 ) -> StartSchedule:
     """Start delays such that the delayed straight moves keep their margins pairwise (greedy).
 
@@ -61,6 +61,8 @@ def start_schedule(
             would otherwise have more than ``max_options`` delays to try.
         slack: every delayed move must end by ``slack`` x the longest move.
         stride: clearances are checked every ``stride`` steps.
+        max_options: delays tried per positioner at most.
+        swap_tries: delays (fewest conflicts first) a positioner no delay fits tries to swap at.
 
     Returns:
         The delays; ``unplaced`` lists the positioners no delay fitted (delay 0).
@@ -142,24 +144,28 @@ def start_schedule(
     for i in order.tolist():
         d, js, options, ok = place(i)
         if d is None:
-            # Swap: i takes the delay with the fewest conflicts; those neighbours go after it.
-            best = int(np.argmin((~ok).sum(axis=1)))
-            others = js[~ok[best]]
-            saved = delay[others].copy(), unplaced[others].copy()
-            delay[i], done[i] = options[best], True
-            done[others] = False
-            placed = True
-            for j in others[np.lexsort((others, -move[others]))].tolist():
-                dj = place(j)[0]
-                if dj is None:
-                    placed = False
+            # Swap: i takes one of the delays with the fewest conflicts (up to swap_tries of
+            # them, fewest first); those neighbours are scheduled again after it.
+            conflicts = (~ok).sum(axis=1)
+            for best in np.lexsort((options, conflicts))[:swap_tries].tolist():
+                others = js[~ok[best]]
+                saved = delay[others].copy(), unplaced[others].copy()
+                delay[i], done[i] = options[best], True
+                done[others] = False
+                placed = True
+                for j in others[np.lexsort((others, -move[others]))].tolist():
+                    dj = place(j)[0]
+                    if dj is None:
+                        placed = False
+                        break
+                    delay[j], done[j], unplaced[j] = dj, True, False
+                done[others] = True
+                if placed:
                     break
-                delay[j], done[j] = dj, True
-            done[others] = True
+                delay[others], unplaced[others] = saved
             if placed:
                 swaps += 1
                 continue
-            delay[others], unplaced[others] = saved
             d = 0
             unplaced[i] = True
         delay[i], done[i] = d, True
