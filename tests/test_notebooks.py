@@ -13,7 +13,8 @@ NOTEBOOKS = sorted((Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
 # Small-size overrides per notebook; keys must be names of its parameters cell.
 SMALL = {
     "01_quickstart": {"N_POSITIONERS": 19},
-    "03_tuning": {"N_POSITIONERS": 7, "SEEDS": 1, "LAMBDA_REPEL": [0.36, 36.0], "HORIZONS": [4, 8], "STEP_LENGTHS": [0.01], "WORKERS": 1},
+    "03_tuning": {"N_POSITIONERS": 7, "SEEDS": 1, "LAMBDA_REPEL": [0.36, 36.0], "HORIZONS": [4, 8], "STEP_LENGTHS": [0.01], "WORKERS": 1,
+                  "SCHEDULE_POSITIONERS": 19, "SCHEDULE_SEEDS": 2},
     "04_central_gap": {"N_POSITIONERS": 2, "SEEDS": 1},
     "05_scaling": {"SIZES": [7, 19], "SEEDS": 1},
     "02_deadlock_rates": {"INSTRUMENTS": ["desi"], "N_POSITIONERS": 7, "CLUSTER_FRACTIONS": [0.0, 0.9], "SEEDS": 1, "WORKERS": 1},
