@@ -595,7 +595,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     n_pair_resolutions = 0
     grids: dict = {}  # joint-space grids of the positioners that needed a detour (mpc_detour)
     after_wait: dict[int, np.ndarray] = {}  # a waiter's route from its waiting place, once released
-    neighbours = _neighbour_lists(pairs, n) if settings.detours else []
+    neighbours, neighbour_rows = _neighbour_lists(pairs, n) if settings.detours else ([], [])
 
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
     try:
@@ -678,7 +678,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
                     if wait_first[b] >= 0 and not first_arrived[b]:
                         continue  # made a waiter earlier in this loop
                     n_routes[b] += 1
-                    resolution = _resolve_blocked(scenario, settings, b, q, goal_final, neighbours, wait_first, first_arrived, step_rad, grids)
+                    resolution = _resolve_blocked(scenario, settings, b, q, goal_final, neighbours, c_now[neighbour_rows[b]], wait_first,
+                                                  first_arrived, step_rad, grids)
                     if isinstance(resolution, PairResolution):
                         f, w = resolution.first, resolution.waiter
                         routed = [(f, resolution.first_route), (w, resolution.to_wait)]
@@ -918,19 +919,23 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     )
 
 
-def _neighbour_lists(pairs: np.ndarray, n: int) -> list[np.ndarray]:
-    """Each positioner's neighbours: partners where it is first in ``pairs``, then where it is
-    second, each in pair order (one sort per column, not a scan of all pairs per positioner)."""
-    parts = []
+def _neighbour_lists(pairs: np.ndarray, n: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each positioner's neighbours and the rows of ``pairs`` that hold them: partners where it
+    is first in ``pairs``, then where it is second, each in pair order (one sort per column, not
+    a scan of all pairs per positioner)."""
+    partners, rows = [], []
     for own, other in ((0, 1), (1, 0)):
         order = np.argsort(pairs[:, own], kind="stable")
-        parts.append(np.split(pairs[order, other], np.searchsorted(pairs[order, own], np.arange(1, n))))
-    return [np.concatenate([a, b]) for a, b in zip(parts[0], parts[1], strict=True)]
+        cuts = np.searchsorted(pairs[order, own], np.arange(1, n))
+        partners.append(np.split(pairs[order, other], cuts))
+        rows.append(np.split(order, cuts))
+    return ([np.concatenate(p) for p in zip(*partners, strict=True)],
+            [np.concatenate(r) for r in zip(*rows, strict=True)])
 
 
 def _resolve_blocked(
     scenario: Scenario, settings: MpcSettings, i: int, q: np.ndarray, goal: np.ndarray, neighbours: list[np.ndarray],
-    wait_first: np.ndarray, released: np.ndarray, step_rad: np.ndarray, grids: dict,
+    c_nb: np.ndarray, wait_first: np.ndarray, released: np.ndarray, step_rad: np.ndarray, grids: dict,
 ) -> PairResolution | np.ndarray | None:
     """A way out for the deadlocked positioner ``i`` (``mpc_detour``), or ``None``.
 
@@ -939,13 +944,10 @@ def _resolve_blocked(
     detour could end on a target that blocks the neighbour (the pair would then push each other
     off their targets in turn). Else a lone detour route around the neighbours held where they
     are. Neighbours waiting for someone (not yet released) or waited for are left alone.
+    ``c_nb`` are the clearances to ``neighbours[i]`` now (the loop's ``c_now``).
     """
     nb = neighbours[i]
     leaders = set(wait_first[wait_first >= 0].tolist())
-    c_nb = clearance_between(
-        scenario.instrument, np.broadcast_to(scenario.base_xy[i], (len(nb), 2)), np.full(len(nb), scenario.orient[i]),
-        np.broadcast_to(q[i], (len(nb), 2)), scenario.base_xy[nb], scenario.orient[nb], q[nb],
-    ).min(axis=-1)
     for k in np.argsort(c_nb, kind="stable"):
         j = int(nb[k])
         if c_nb[k] >= settings.conflict_radius_mm or (wait_first[j] >= 0 and not released[j]) or j in leaders:
