@@ -7,7 +7,7 @@ import pytest
 
 from fiberplan.errors import ScenarioError
 from fiberplan.instrument import load_instrument
-from fiberplan.layout import focal_plane, hex_patch, neighbour_pairs
+from fiberplan.layout import focal_plane, hex_patch, neighbour_lists, neighbour_pairs
 
 
 @pytest.mark.parametrize("n", [1, 7, 19, 61, 500, 5000])
@@ -52,3 +52,17 @@ def test_interior_neighbour_count_comes_from_geometry(name, expected):
     counts = np.bincount(pairs.ravel(), minlength=len(base))
     assert counts[0] == expected  # the centre positioner is interior
     assert (pairs[:, 0] < pairs[:, 1]).all()
+
+
+def test_neighbour_lists_match_the_pairs():
+    inst = load_instrument("desi")
+    base = hex_patch(61, inst.pitch_mm)
+    pairs = neighbour_pairs(inst, base)
+    neighbours, rows = neighbour_lists(pairs, len(base))
+    assert sum(len(r) for r in rows) == 2 * len(pairs)
+    for i in range(len(base)):
+        held = pairs[rows[i]]
+        assert np.all((held[:, 0] == i) | (held[:, 1] == i))
+        assert np.array_equal(np.where(held[:, 0] == i, held[:, 1], held[:, 0]), neighbours[i])
+    centre = pairs[(pairs == 0).any(axis=1)]
+    assert sorted(neighbours[0].tolist()) == sorted(centre[centre != 0].tolist())

@@ -75,3 +75,18 @@ def neighbour_pairs(instrument: Instrument, base_xy: np.ndarray) -> np.ndarray:
     pairs = tree.query_pairs(2.0 * instrument.extent_mm, output_type="ndarray")
     pairs = np.sort(pairs.astype(np.int64), axis=1)
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def neighbour_lists(pairs: np.ndarray, n: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each positioner's neighbours and the rows of ``pairs`` (``(P, 2)``, e.g. from
+    :func:`neighbour_pairs`) that hold them: partners where it is first in ``pairs``, then where
+    it is second, each in pair order (one sort per column, not a scan of all pairs per
+    positioner)."""
+    partners, rows = [], []
+    for own, other in ((0, 1), (1, 0)):
+        order = np.argsort(pairs[:, own], kind="stable")
+        cuts = np.searchsorted(pairs[order, own], np.arange(1, n))
+        partners.append(np.split(pairs[order, other], cuts))
+        rows.append(np.split(order, cuts))
+    return ([np.concatenate(p) for p in zip(*partners, strict=True)],
+            [np.concatenate(r) for r in zip(*rows, strict=True)])

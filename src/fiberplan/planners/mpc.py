@@ -48,6 +48,7 @@ from fiberplan.errors import PlannerError
 from fiberplan.geometry import clearance_between, pair_clearance
 from fiberplan.instrument import Instrument
 from fiberplan.kinematics import fiber_positions
+from fiberplan.layout import neighbour_lists
 from fiberplan.planners import ProgressCallback, instrument_defaults
 from fiberplan.planners.mpc_detour import PairResolution, detour_route, pair_resolution
 from fiberplan.planners.mpc_exec import QpBatch, make_executor
@@ -595,7 +596,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     n_pair_resolutions = 0
     grids: dict = {}  # joint-space grids of the positioners that needed a detour (mpc_detour)
     after_wait: dict[int, np.ndarray] = {}  # a waiter's route from its waiting place, once released
-    neighbours, neighbour_rows = _neighbour_lists(pairs, n) if settings.detours else ([], [])
+    neighbours, neighbour_rows = neighbour_lists(pairs, n) if settings.detours else ([], [])
 
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
     try:
@@ -917,20 +918,6 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         settings=dataclasses.asdict(settings),
         stats=stats,
     )
-
-
-def _neighbour_lists(pairs: np.ndarray, n: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Each positioner's neighbours and the rows of ``pairs`` that hold them: partners where it
-    is first in ``pairs``, then where it is second, each in pair order (one sort per column, not
-    a scan of all pairs per positioner)."""
-    partners, rows = [], []
-    for own, other in ((0, 1), (1, 0)):
-        order = np.argsort(pairs[:, own], kind="stable")
-        cuts = np.searchsorted(pairs[order, own], np.arange(1, n))
-        partners.append(np.split(pairs[order, other], cuts))
-        rows.append(np.split(order, cuts))
-    return ([np.concatenate(p) for p in zip(*partners, strict=True)],
-            [np.concatenate(r) for r in zip(*rows, strict=True)])
 
 
 def _resolve_blocked(

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fiberplan.geometry import capsule_segments, capsule_tables, clearance_between, segment_distance
+from fiberplan.layout import neighbour_lists
 from fiberplan.scenario import Scenario
 
 __all__ = ["StartSchedule", "start_schedule"]
@@ -98,12 +99,7 @@ def start_schedule(
                                                    pair_min(a, scenario.target[a], b, scenario.target[b])))
     # Pairs whose undelayed moves keep their margin need no check while both start at once.
     clean = moving_min(a[:, None], times[None, :], b[:, None], times[None, :]).min(axis=1) >= floor
-    nb_of: list[list[tuple[int, int]]] = [[] for _ in range(n)]
-    for r, (p, q) in enumerate(pairs.tolist()):
-        nb_of[p].append((q, r))
-        nb_of[q].append((p, r))
-    nb = [np.array([x[0] for x in lst], dtype=np.int64) for lst in nb_of]
-    nb_row = [np.array([x[1] for x in lst], dtype=np.int64) for lst in nb_of]
+    nb, nb_row = neighbour_lists(pairs, n)
 
     def fits(i: int, delays: np.ndarray, js: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """(D, J): whether ``i`` delayed by each of ``delays`` keeps its margin to each ``j``."""
