@@ -115,6 +115,17 @@ def inverse_kinematics(
     return joints
 
 
+def straight_path(q: np.ndarray, goal: np.ndarray, step_rad: np.ndarray, n_steps: int) -> np.ndarray:
+    """Saturated joint-space path from ``q`` toward ``goal``: ``(N, n_steps, 2)``: every joint at full
+    speed (``step_rad`` per step) straight toward its goal, stopping there.
+
+    .. math:: r(k) = q + \\operatorname{clip}(g - q, -k \\omega h, k \\omega h), \\quad k = 1..n
+    """
+    k = np.arange(1, n_steps + 1)[None, :, None]
+    delta = (goal - q)[:, None, :]
+    return q[:, None, :] + np.clip(delta, -k * step_rad, k * step_rad)
+
+
 def move_times(instrument: Instrument, start: np.ndarray, goal: np.ndarray) -> np.ndarray:
     """Unobstructed straight-move time of each positioner, every joint at full speed (s).
 

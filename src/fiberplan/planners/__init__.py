@@ -16,6 +16,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from fiberplan.errors import PlannerError
+from fiberplan.instrument import Instrument
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult
 
@@ -37,7 +38,7 @@ class PlannerFunction(Protocol):
     def __call__(self, scenario: Scenario, settings: Any, progress: ProgressCallback | None = None) -> PlanResult: ...
 
 
-def instrument_defaults(instrument: Any, table: str, defaults: Any) -> Any:
+def instrument_defaults(instrument: Instrument, table: str, defaults: Any) -> Any:
     """``defaults`` (a settings dataclass) with the instrument file's ``[planner_defaults.<table>]`` applied.
 
     Raises:

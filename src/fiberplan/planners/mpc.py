@@ -47,7 +47,7 @@ import numpy as np
 from fiberplan.errors import PlannerError
 from fiberplan.geometry import clearance_between, pair_clearance
 from fiberplan.instrument import Instrument
-from fiberplan.kinematics import fiber_positions
+from fiberplan.kinematics import fiber_positions, straight_path
 from fiberplan.layout import neighbour_lists
 from fiberplan.planners import ProgressCallback, instrument_defaults
 from fiberplan.planners.mpc_detour import PairResolution, detour_route, pair_resolution
@@ -228,16 +228,6 @@ def _step_motion_mm(instrument: Instrument, dt_s: float) -> float:
         (instrument.alpha_point_extent_mm * instrument.alpha_speed_rad_s + instrument.beta_point_extent_mm * instrument.beta_speed_rad_s)
         * dt_s
     )
-
-
-def straight_path(q: np.ndarray, goal: np.ndarray, step_rad: np.ndarray, n_steps: int) -> np.ndarray:
-    """Saturated joint-space path from ``q`` toward ``goal``: ``(N, n_steps, 2)``.
-
-    .. math:: r(k) = q + \\operatorname{clip}(g - q, -k \\omega h, k \\omega h), \\quad k = 1..n
-    """
-    k = np.arange(1, n_steps + 1)[None, :, None]
-    delta = (goal - q)[:, None, :]
-    return q[:, None, :] + np.clip(delta, -k * step_rad, k * step_rad)
 
 
 ROUTE_PASS = 0.5

@@ -25,7 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fiberplan.geometry import capsule_segments, capsule_tables, clearance_between, segment_distance
+from fiberplan.geometry import capsule_segments, capsule_tables, segment_distance
+from fiberplan.kinematics import straight_path
 from fiberplan.layout import neighbour_lists
 from fiberplan.scenario import Scenario
 
@@ -39,12 +40,6 @@ class StartSchedule:
     delay_steps: np.ndarray
     unplaced: np.ndarray
     swaps: int
-
-
-def _straight_moves(start: np.ndarray, target: np.ndarray, step_rad: np.ndarray, n_steps: int) -> np.ndarray:
-    """Joints ``(N, n_steps + 1, 2)`` of every straight full-speed move, step 0 = start."""
-    k = np.arange(n_steps + 1)[None, :, None]
-    return start[:, None, :] + np.clip((target - start)[:, None, :], -k * step_rad, k * step_rad)
 
 
 def start_schedule(
@@ -76,7 +71,8 @@ def start_schedule(
         return StartSchedule(delay, np.zeros(0, dtype=np.int64), 0)
     move = np.ceil(np.max(np.abs(scenario.target - scenario.start) / step_rad, axis=1) - 1e-9).astype(np.int64)
     horizon = int(np.ceil(slack * move.max()))
-    path = _straight_moves(scenario.start, scenario.target, step_rad, horizon)
+    # Joints of every straight full-speed move at steps 0..horizon.
+    path = np.concatenate([scenario.start[:, None], straight_path(scenario.start, scenario.target, step_rad, horizon)], axis=1)
     times = np.unique(np.append(np.arange(0, horizon + 1, stride), horizon))
     base, orient = scenario.base_xy, scenario.orient
     # Capsule segments of every move at every step, computed once: (N, steps, C, 2) each.
@@ -85,9 +81,6 @@ def start_schedule(
     _, _, _, combos, combo_radii = capsule_tables(inst)
     ca, cb = combos[:, 0], combos[:, 1]
 
-    def pair_min(i: np.ndarray, qi: np.ndarray, j: np.ndarray, qj: np.ndarray) -> np.ndarray:
-        return clearance_between(inst, base[i], orient[i], qi, base[j], orient[j], qj).min(axis=-1)
-
     def moving_min(i: np.ndarray, ti: np.ndarray, j: np.ndarray, tj: np.ndarray) -> np.ndarray:
         """Clearance of ``i`` after ``ti`` steps of its move to ``j`` after ``tj`` (index arrays, broadcast)."""
         dist = segment_distance(seg_start[i, ti][..., ca, :], seg_end[i, ti][..., ca, :],
@@ -95,8 +88,8 @@ def start_schedule(
         return (dist - combo_radii).min(axis=-1)
 
     a, b = pairs[:, 0], pairs[:, 1]
-    floor = np.minimum(margin_mm, 0.9 * np.minimum(pair_min(a, scenario.start[a], b, scenario.start[b]),
-                                                   pair_min(a, scenario.target[a], b, scenario.target[b])))
+    # Step 0 is the start and the last step the target of every move.
+    floor = np.minimum(margin_mm, 0.9 * np.minimum(moving_min(a, 0, b, 0), moving_min(a, horizon, b, horizon)))
     # Pairs whose undelayed moves keep their margin need no check while both start at once.
     clean = moving_min(a[:, None], times[None, :], b[:, None], times[None, :]).min(axis=1) >= floor
     nb, nb_row = neighbour_lists(pairs, n)
@@ -143,6 +136,7 @@ def start_schedule(
             # Swap: i takes one of the delays with the fewest conflicts (up to swap_tries of
             # them, fewest first); those neighbours are scheduled again after it.
             conflicts = (~ok).sum(axis=1)
+            placed = False
             for best in np.lexsort((options, conflicts))[:swap_tries].tolist():
                 others = js[~ok[best]]
                 saved = delay[others].copy(), unplaced[others].copy()
