@@ -125,6 +125,15 @@ class Instrument:
         return np.array([self.alpha_speed_rad_s, self.beta_speed_rad_s])
 
     @property
+    def full_turn_s(self) -> float:
+        """Time of one full turn of the slower joint at full speed (s).
+
+        The planners' default time budget beyond ``4 x`` the lower bound (DNF and MPC alike,
+        so that their comparisons run with the same budget).
+        """
+        return 2.0 * math.pi / float(min(self.alpha_speed_rad_s, self.beta_speed_rad_s))
+
+    @property
     def limits_rad(self) -> np.ndarray:
         """Hard stops as a ``(2, 2)`` array: row 0 alpha ``[lo, hi]``, row 1 beta ``[lo, hi]``."""
         return np.array([self.alpha_limits_rad, self.beta_limits_rad], dtype=float)

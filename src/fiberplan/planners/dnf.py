@@ -159,7 +159,7 @@ class DnfSettings:
         rho = instrument.reach_max_mm
         lam1 = (_DESI_RHO_MM**2 * _DESI_DT_S) / (rho**2 * dt)
         radii = [a.radius_mm + b.radius_mm for a, b in ((instrument.capsules[i], instrument.capsules[j]) for i, j in instrument.capsule_pairs)]
-        half_turn = math.pi / float(min(instrument.speeds_rad_s))
+        half_turn = instrument.full_turn_s / 2.0
         defaults = cls(
             dt_s=dt,
             lambda_attract=lam1,

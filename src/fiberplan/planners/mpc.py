@@ -85,7 +85,8 @@ class MpcSettings:
         max_input_change: optional bound on ``|u(k+1) - u(k)| / omega_max`` per step.
         deadlock_window_steps: steps without progress that mark a positioner deadlocked.
         max_duration_factor: the run stops after this many times the lower bound ...
-        max_duration_extra_s: ... plus this many seconds.
+        max_duration_extra_s: ... plus this many seconds (default: one turn of the slower
+            joint, the DNF's budget, :attr:`Instrument.full_turn_s`).
         stop_after_stalled_windows: the run also stops once every positioner not at its target
             has made no progress for this many deadlock windows (0: never).
         wait_rules: resolve a deadlocked pair whose targets impose an order by sending the
@@ -161,7 +162,7 @@ class MpcSettings:
             priority_margin_mm=round(0.4 * step_mm, 4),
             safety_margin_mm=round(0.1 * step_mm, 4),
             conflict_radius_mm=round(4.0 * step_mm, 4),
-            max_duration_extra_s=round(200 * dt, 4),
+            max_duration_extra_s=instrument.full_turn_s,
         )
         return instrument_defaults(instrument, "mpc", defaults)
 
