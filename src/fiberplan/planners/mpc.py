@@ -101,6 +101,9 @@ class MpcSettings:
             (``mpc_schedule.start_schedule``); each one's reference starts after its delay.
         schedule_delay_steps: granularity of the start delays (control steps).
         schedule_slack: every delayed move must end by this many times the longest move.
+        schedule_l_paths: a positioner the start schedule cannot place on its straight move
+            tries the two L-shaped moves (one joint, then the other) and, if one fits, follows
+            it as a route through its corner.
         executor: ``sequential`` or ``parallel``.
         workers: processes of the parallel executor (the planning process counts as one).
         qp_solver: ``osqp`` (persistent workspaces, the fast path) or a qpsolvers backend name.
@@ -135,6 +138,7 @@ class MpcSettings:
     start_schedule: bool = False
     schedule_delay_steps: int = 4
     schedule_slack: float = 1.2
+    schedule_l_paths: bool = False
     executor: str = "sequential"
     workers: int = 2
     qp_solver: str = "osqp"
@@ -545,8 +549,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     window = settings.deadlock_window_steps
     # Start schedule (mpc_schedule): each positioner's reference starts after its delay.
     schedule_t0 = time.perf_counter()
-    schedule = start_schedule(scenario, step_rad, settings.margin_mm, settings.schedule_delay_steps, settings.schedule_slack) \
-        if settings.start_schedule else None
+    schedule = start_schedule(scenario, step_rad, settings.margin_mm, settings.schedule_delay_steps, settings.schedule_slack,
+                              l_paths=settings.schedule_l_paths) if settings.start_schedule else None
     schedule_wall_s = time.perf_counter() - schedule_t0
     start_step = schedule.delay_steps if schedule is not None else np.zeros(n, dtype=np.int64)
 
@@ -588,6 +592,13 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     grids: dict = {}  # joint-space grids of the positioners that needed a detour (mpc_detour)
     after_wait: dict[int, np.ndarray] = {}  # a waiter's route from its waiting place, once released
     neighbours, neighbour_rows = neighbour_lists(pairs, n) if settings.detours else ([], [])
+    if schedule is not None and schedule.corner is not None:
+        # L-shaped scheduled moves follow their corner as a route (from their start on).
+        for who in np.flatnonzero(~np.isnan(schedule.corner[:, 0])).tolist():
+            routes[who] = np.array([schedule.corner[who], goal_final[who]])
+            route_pos[who] = 0
+            if start_step[who] == 0:
+                plan[who] = own_plan[who] = route_path(q[who], routes[who], 0, step_rad, H)
 
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
     try:
@@ -790,13 +801,15 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             counters.waiting |= waiting
             goal[fold, 1] = datum[fold, 1]
             for who in routes:
-                goal[who] = routes[who][route_pos[who]]
+                if not unstarted[who]:
+                    goal[who] = routes[who][route_pos[who]]
             goal[level == 3, 1] = datum[level == 3, 1]
 
             goal_prev = goal
             ref = straight_path(q, goal, step_rad, H)
             for who in routes:
-                ref[who] = route_path(q[who], routes[who], route_pos[who], step_rad, H)
+                if not unstarted[who]:
+                    ref[who] = route_path(q[who], routes[who], route_pos[who], step_rad, H)
             q_next = ref[:, 0].copy()
             new_plan = ref.copy()
             n_qp = 0
@@ -898,6 +911,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         "stopped_stalled": stopped_stalled,
         "schedule_delayed": int(np.count_nonzero(start_step)),
         "schedule_unplaced": len(schedule.unplaced) if schedule is not None else 0,
+        "schedule_l_paths": int(np.count_nonzero(~np.isnan(schedule.corner[:, 0]))) if schedule is not None and schedule.corner is not None else 0,
         "schedule_swaps": schedule.swaps if schedule is not None else 0,
         "schedule_wall_s": schedule_wall_s,
     }

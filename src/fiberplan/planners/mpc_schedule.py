@@ -40,11 +40,12 @@ class StartSchedule:
     delay_steps: np.ndarray
     unplaced: np.ndarray
     swaps: int
+    corner: np.ndarray | None = None  # (N, 2): the corner of an L-shaped move, NaN: straight
 
 
 def start_schedule(
     scenario: Scenario, step_rad: np.ndarray, margin_mm: float, delay_steps: int = 4, slack: float = 1.2, stride: int = 2,
-    max_options: int = 64, swap_tries: int = 1,
+    max_options: int = 64, swap_tries: int = 1, l_paths: bool = False,
 ) -> StartSchedule:
     """Start delays such that the delayed straight moves keep their margins pairwise (greedy).
 
@@ -127,6 +128,32 @@ def start_schedule(
                 return int(options[lo + good[0]]), js, options, ok
         return None, js, options, ok
 
+    corner = np.full((n, 2), np.nan)
+
+    def reroute(i: int) -> bool:
+        """Place ``i`` on one of its two L-shaped moves (one joint, then the other), if one fits."""
+        s_i, t_i = scenario.start[i], scenario.target[i]
+        saved = seg_start[i].copy(), seg_end[i].copy(), int(move[i]), clean[nb_row[i]].copy(), bool(done[i])
+        for c in (np.array([t_i[0], s_i[1]]), np.array([s_i[0], t_i[1]])):
+            k1 = int(np.ceil(np.max(np.abs(c - s_i) / step_rad) - 1e-9))
+            k2 = int(np.ceil(np.max(np.abs(t_i - c) / step_rad) - 1e-9))
+            if k1 == 0 or k2 == 0 or k1 + k2 > horizon:
+                continue
+            leg1 = straight_path(s_i[None], c[None], step_rad, k1)[0]
+            leg2 = straight_path(c[None], t_i[None], step_rad, horizon - k1)[0]
+            p_i = np.concatenate([s_i[None], leg1, leg2])
+            ss, se = capsule_segments(inst, base[i:i + 1], orient[i:i + 1], p_i[:, None, :])
+            seg_start[i], seg_end[i] = ss[:, 0], se[:, 0]
+            move[i] = k1 + k2
+            clean[nb_row[i]] = False
+            done[i] = False
+            d = place(i)[0]
+            if d is not None:
+                delay[i], corner[i], done[i] = d, c, True
+                return True
+            seg_start[i], seg_end[i], move[i], clean[nb_row[i]], done[i] = saved
+        return False
+
     order = np.lexsort((np.arange(n), -move))
     unplaced = np.zeros(n, dtype=bool)
     swaps = 0
@@ -159,4 +186,10 @@ def start_schedule(
             d = 0
             unplaced[i] = True
         delay[i], done[i] = d, True
-    return StartSchedule(delay, np.flatnonzero(unplaced), swaps)
+    if l_paths:
+        # Unplaced positioners try the two L-shaped moves, which sweep other places than the
+        # straight one, against every neighbour as scheduled.
+        for i in np.flatnonzero(unplaced)[np.lexsort((np.flatnonzero(unplaced), -move[unplaced]))].tolist():
+            if reroute(i):
+                unplaced[i] = False
+    return StartSchedule(delay, np.flatnonzero(unplaced), swaps, corner)
