@@ -13,10 +13,20 @@ from fiberplan.planners.mpc_schedule import start_schedule
 from fiberplan.verify import verify
 
 
-def _delayed_moves(sc, step_rad, delay, t):
-    """Joints at step ``t`` of every straight full-speed move started after ``delay`` (an independent restatement)."""
+def _delayed_moves(sc, step_rad, delay, t, corner=None):
+    """Joints at step ``t`` of every full-speed move started after ``delay`` (an independent
+    restatement): straight, or through ``corner`` where it is not NaN (one leg, then the other)."""
     k = np.clip(t - delay, 0, None)[:, None]
-    return sc.start + np.clip(sc.target - sc.start, -k * step_rad, k * step_rad)
+    q = sc.start + np.clip(sc.target - sc.start, -k * step_rad, k * step_rad)
+    if corner is not None:
+        for i in np.flatnonzero(~np.isnan(corner[:, 0])):
+            k1 = int(np.ceil(np.max(np.abs(corner[i] - sc.start[i]) / step_rad) - 1e-9))
+            ki = k[i, 0]
+            if ki <= k1:
+                q[i] = sc.start[i] + np.clip(corner[i] - sc.start[i], -ki * step_rad, ki * step_rad)
+            else:
+                q[i] = corner[i] + np.clip(sc.target[i] - corner[i], -(ki - k1) * step_rad, (ki - k1) * step_rad)
+    return q
 
 
 def _pair_clearance(sc, pairs, qa, qb):
@@ -53,6 +63,48 @@ def test_placed_moves_keep_their_margins_and_end_in_time(instrument, n, seed):
     assert np.any(undelayed < floor)
 
 
+def test_l_shaped_moves_place_positioners_no_delay_fits():
+    sc = make_scenario("desi", 500, "random", 0)
+    settings = make_settings("mpc", sc)
+    step_rad = sc.instrument.speeds_rad_s * settings.dt_s
+    straight = start_schedule(sc, step_rad, settings.margin_mm)
+    schedule = start_schedule(sc, step_rad, settings.margin_mm, l_paths=True)
+    routed = np.flatnonzero(~np.isnan(schedule.corner[:, 0]))
+    assert len(routed) > 0
+    # Only positioners the straight schedule left unplaced are routed, and the rest keep their delays.
+    assert set(routed) <= set(straight.unplaced) and len(schedule.unplaced) == len(straight.unplaced) - len(routed)
+    keep = np.isnan(schedule.corner[:, 0])
+    assert np.array_equal(schedule.delay_steps[keep], straight.delay_steps[keep])
+    # A corner changes one joint only: alpha first or beta first.
+    c = schedule.corner[routed]
+    alpha_first = np.all(c == np.column_stack([sc.target[routed, 0], sc.start[routed, 1]]), axis=1)
+    beta_first = np.all(c == np.column_stack([sc.start[routed, 0], sc.target[routed, 1]]), axis=1)
+    assert np.all(alpha_first | beta_first)
+    # Every placed pair keeps its floor along the scheduled moves, L-shaped ones included, and
+    # every move ends in time.
+    move = np.ceil(np.max(np.abs(sc.target - sc.start) / step_rad, axis=1) - 1e-9)
+    horizon = int(np.ceil(1.2 * move.max()))
+    placed = np.ones(sc.n_positioners, dtype=bool)
+    placed[schedule.unplaced] = False
+    pairs = sc.pairs[placed[sc.pairs[:, 0]] & placed[sc.pairs[:, 1]]]
+    floor = np.minimum(settings.margin_mm, 0.9 * np.minimum(_pair_clearance(sc, pairs, sc.start, sc.start),
+                                                            _pair_clearance(sc, pairs, sc.target, sc.target)))
+    worst = np.full(len(pairs), np.inf)
+    for t in [*range(0, horizon + 1, 2), horizon]:
+        q = _delayed_moves(sc, step_rad, schedule.delay_steps, t, schedule.corner)
+        worst = np.minimum(worst, _pair_clearance(sc, pairs, q, q))
+    assert np.all(worst >= floor - 1e-9)
+    assert np.allclose(_delayed_moves(sc, step_rad, schedule.delay_steps, horizon, schedule.corner), sc.target)
+    # The planner follows the corner (within half a step: the QP rounds it) and arrives.
+    result = plan(sc, "mpc", {"schedule_l_paths": True})
+    assert result.stats["schedule_l_paths"] == len(routed)
+    assert verify(sc, result.trajectory).n_collisions == 0
+    joints = result.trajectory.joints
+    for i in routed:
+        assert np.min(np.max(np.abs(joints[:, i] - schedule.corner[i]) / step_rad, axis=1)) <= 0.5 + 1e-9
+        assert np.all(joints[-1, i] == sc.target[i])
+
+
 def test_no_pairs_no_delays():
     sc = make_scenario("desi", 1, "random", 0)
     schedule = start_schedule(sc, sc.instrument.speeds_rad_s * 0.01, 0.3)
@@ -65,7 +117,8 @@ def test_planner_holds_each_positioner_until_its_start():
     report = verify(sc, result.trajectory)
     assert report.n_collisions == 0
     settings = make_settings("mpc", sc)
-    delay = start_schedule(sc, sc.instrument.speeds_rad_s * settings.dt_s, settings.margin_mm).delay_steps
+    delay = start_schedule(sc, sc.instrument.speeds_rad_s * settings.dt_s, settings.margin_mm,
+                           l_paths=settings.schedule_l_paths).delay_steps
     assert result.stats["schedule_delayed"] == int(np.count_nonzero(delay)) > 0
     joints = result.trajectory.joints
     delayed = np.flatnonzero(delay)
