@@ -3,6 +3,8 @@ qpsolvers backends, forced OSQP failures, and sequential == parallel executors."
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -72,6 +74,19 @@ def test_defaults_scale_with_the_instrument():
     assert moons.dt_s == pytest.approx(0.05)
     assert moons.conflict_radius_mm > desi.conflict_radius_mm
     assert desi.safety_margin_mm > 0
+
+
+@pytest.mark.parametrize("name", ["desi", "moons", "sdss"])
+def test_default_time_budget_is_the_dnfs(name):
+    # Both planners get 4 x the lower bound plus one turn of the slower joint by default, so
+    # that a comparison does not hand one of them more time.
+    from fiberplan.planners.dnf import DnfSettings
+
+    instrument = load_instrument(name)
+    extra = MpcSettings.for_instrument(instrument).max_duration_extra_s
+    assert extra == pytest.approx(2.0 * math.pi / min(instrument.alpha_speed_rad_s, instrument.beta_speed_rad_s))
+    assert extra == pytest.approx(2.0 * DnfSettings.for_instrument(instrument).deadlock_window_s)
+    assert MpcSettings.for_instrument(instrument).max_duration_factor == 4.0
 
 
 @pytest.mark.parametrize(
@@ -386,6 +401,8 @@ def test_instrument_file_sets_mpc_defaults():
 
     desi = load_instrument("desi")
     assert MpcSettings.for_instrument(desi).start_schedule  # desi.toml: [planner_defaults.mpc]
+    assert MpcSettings.for_instrument(desi).schedule_l_paths
+    assert not MpcSettings.for_instrument(load_instrument("moons")).schedule_l_paths
     assert not MpcSettings.for_instrument(load_instrument("moons")).start_schedule
     assert not MpcSettings.for_instrument(load_instrument("sdss")).start_schedule
     wrong = dataclasses.replace(desi, planner_defaults={"mpc": {"start_shedule": True}})
