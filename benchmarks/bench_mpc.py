@@ -17,6 +17,7 @@ its report, never from the planner. Run from the repository root, e.g.::
     python benchmarks/bench_mpc.py sdss --seeds 20
     python benchmarks/bench_mpc.py scaling --seeds 1 --workers 2
     python benchmarks/bench_mpc.py table      # Markdown table of the saved results
+    python benchmarks/bench_mpc.py figure     # results/mpc_desi_makespan.png from the saved results
 
 ``table`` also fills the ``dnf`` column of the DESI set from ``results/dnf_desi.json``
 (written by ``bench_dnf.py``) for the same seeds when this benchmark did not run the DNF.
@@ -193,9 +194,53 @@ def print_table() -> None:
                     print(_row(f"{instrument} dnf (dnf_desi.json, same seeds)", cell["kind"], cell["n_positioners"], dnf))
 
 
+# DESI result files drawn by ``figure``: label -> file (missing files are skipped).
+FIGURE_DESI = {
+    "mpc, current": "mpc_desi.json",
+    "mpc, start schedule without L-shaped moves": "mpc_desi_before_l_paths.json",
+    "mpc, before the start schedule (7a53f8e)": "mpc_desi_before_schedule.json",
+}
+
+
+def desi_makespan_figure(out: Path) -> Path:
+    """Empirical distribution of makespan / lower bound over the DESI seeds, mpc versions and the DNF."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from fiberplan.plotting import save_figure
+
+    series: dict[str, np.ndarray] = {}
+    for label, name in FIGURE_DESI.items():
+        path = RESULTS / name
+        if path.exists():
+            runs = [r for c in json.loads(path.read_text())["cells"] if c["planner"] == "mpc" for r in c["runs"]]
+            series[label] = np.array([r["makespan_over_bound"] for r in runs])
+    seeds = [r["seed"] for r in json.loads((RESULTS / "mpc_desi.json").read_text())["cells"][0]["runs"]]
+    dnf_path = RESULTS / "dnf_desi.json"
+    if dnf_path.exists():
+        for cell in json.loads(dnf_path.read_text())["cells"]:
+            if cell.get("n_positioners") == 500 and cell.get("variant", "default") == "default":
+                series["dnf"] = np.array([r["makespan_s"] / r["lower_bound_s"] for r in cell["runs"] if r["seed"] in seeds])
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for label, values in series.items():
+        x = np.sort(values)
+        ax.step(x, np.arange(1, len(x) + 1) / len(x), where="post",
+                label=f"{label}: median {np.median(values):.2f}, <= 1.2 on {int(np.sum(values <= 1.2))} of {len(values)}")
+    ax.axvline(1.2, color="#999999", ls="--", lw=0.8)
+    ax.text(1.22, 0.5, "target 1.2", color="#666666", fontsize=8)
+    ax.set_xlabel("makespan / lower bound")
+    ax.set_ylabel("fraction of seeds")
+    ax.set_title(f"DESI-like, N = 500, random targets, {len(seeds)} seeds")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    return save_figure(fig, out)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("set", choices=[*sorted(SETS), "table"])
+    parser.add_argument("set", choices=[*sorted(SETS), "table", "figure"])
     parser.add_argument("--seeds", type=int, default=10, help="seeds per cell")
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--sizes", type=int, nargs="+", help="numbers of positioners (default per set)")
@@ -209,6 +254,9 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.set == "table":
         print_table()
+        return 0
+    if args.set == "figure":
+        print(desi_makespan_figure(args.out or RESULTS / "mpc_desi_makespan.png"))
         return 0
     spec = SETS[args.set]
     sizes = args.sizes or spec["sizes"]
