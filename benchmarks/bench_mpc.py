@@ -92,7 +92,8 @@ def run_one(instrument: str, n: int, kind: str, seed: int, planner: str, overrid
     for key in (
         "qp_solves", "qp_failures", "qp_inaccurate", "qp_fraction", "qp_solve_ms_median", "qp_solve_ms_p95",
         "qp_iterations_median", "safety_holds", "deadlocks_detected", "deadlocks_resolved", "deadlocks_remaining",
-        "retreats", "yielding_positioners", "n_steps",
+        "retreats", "yielding_positioners", "n_steps", "waiting_rules", "detours", "pair_resolutions",
+        "schedule_delayed", "schedule_unplaced", "schedule_l_paths", "schedule_swaps", "schedule_wall_s",
     ):
         if key in stats:
             record[key] = stats[key]
