@@ -32,8 +32,9 @@ At every control step (``formulations/mpc.md``):
    (``stop_after_stalled_windows``), or at the time limit.
 
 Before the first step (on by default for DESI), every positioner gets a start delay such that
-the delayed straight moves keep their margins pairwise where a delay can
-(:mod:`fiberplan.planners.mpc_schedule`); it holds until then.
+the delayed straight moves keep their margins pairwise where a delay can; a positioner no
+delay fits may take an L-shaped move instead, followed as a route through its corner
+(:mod:`fiberplan.planners.mpc_schedule`). Each positioner holds until its start.
 """
 
 from __future__ import annotations
@@ -153,7 +154,9 @@ class MpcSettings:
         radius are multiples of the largest distance any capsule point moves in one step
         (``step_motion_mm``), so slow (MOONS) and fast (DESI) motors get the same behaviour
         per step. An instrument file may override any setting in a ``[planner_defaults.mpc]``
-        table (DESI's turns the start schedule on: measured to help there, not on MOONS).
+        table (DESI's turns the start schedule and its L-shaped moves on: measured to help
+        there, not on MOONS). The time budget beyond ``4 x`` the lower bound is the DNF's,
+        one turn of the slower joint.
 
         Raises:
             PlannerError: the ``[planner_defaults.mpc]`` table names an unknown setting.
@@ -592,7 +595,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     grids: dict = {}  # joint-space grids of the positioners that needed a detour (mpc_detour)
     after_wait: dict[int, np.ndarray] = {}  # a waiter's route from its waiting place, once released
     neighbours, neighbour_rows = neighbour_lists(pairs, n) if settings.detours else ([], [])
-    if schedule is not None and schedule.corner is not None:
+    if schedule is not None:
         # L-shaped scheduled moves follow their corner as a route (from their start on).
         for who in np.flatnonzero(~np.isnan(schedule.corner[:, 0])).tolist():
             routes[who] = np.array([schedule.corner[who], goal_final[who]])
@@ -911,7 +914,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         "stopped_stalled": stopped_stalled,
         "schedule_delayed": int(np.count_nonzero(start_step)),
         "schedule_unplaced": len(schedule.unplaced) if schedule is not None else 0,
-        "schedule_l_paths": int(np.count_nonzero(~np.isnan(schedule.corner[:, 0]))) if schedule is not None and schedule.corner is not None else 0,
+        "schedule_l_paths": int(np.count_nonzero(~np.isnan(schedule.corner[:, 0]))) if schedule is not None else 0,
         "schedule_swaps": schedule.swaps if schedule is not None else 0,
         "schedule_wall_s": schedule_wall_s,
     }

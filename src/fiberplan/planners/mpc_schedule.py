@@ -1,4 +1,4 @@
-"""Start schedule of the ``mpc`` planner: prioritised start delays along straight moves.
+"""Start schedule of the ``mpc`` planner: prioritised start delays along straight (or L-shaped) moves.
 
 Before the first control step, positioners in decreasing order of their move time each take
 the smallest start delay (a multiple of ``delay_steps``) for which their straight full-speed
@@ -12,7 +12,10 @@ them only as deadlocks a window later.
 A positioner that no delay fits swaps with the neighbours in its way: it takes the delay with
 the fewest conflicts and those neighbours are scheduled again after it; if one of them then
 fits nowhere the swap is undone and it starts at once (``unplaced``: the reactive loop and its
-deadlock rules handle it, as without a schedule).
+deadlock rules handle it, as without a schedule). With ``l_paths``, each unplaced positioner then
+tries the two L-shaped moves (alpha first, or beta first, through the corner where one joint has
+arrived and the other not yet moved) with the same delays and checks; the planner follows a
+placed one as a route through its corner.
 
 The schedule only sets when each positioner's reference starts: collision avoidance stays
 with the QPs and the safety layer. Clearances are checked every ``stride`` steps. See
@@ -40,14 +43,14 @@ class StartSchedule:
     delay_steps: np.ndarray
     unplaced: np.ndarray
     swaps: int
-    corner: np.ndarray | None = None  # (N, 2): the corner of an L-shaped move, NaN: straight
+    corner: np.ndarray  # (N, 2): the corner of a positioner's L-shaped move; NaN rows: straight
 
 
 def start_schedule(
     scenario: Scenario, step_rad: np.ndarray, margin_mm: float, delay_steps: int = 4, slack: float = 1.2, stride: int = 2,
     max_options: int = 64, swap_tries: int = 1, l_paths: bool = False,
 ) -> StartSchedule:
-    """Start delays such that the delayed straight moves keep their margins pairwise (greedy).
+    """Start delays such that the delayed moves keep their margins pairwise (greedy).
 
     Args:
         scenario: the scenario (starts, targets, neighbour pairs).
@@ -60,16 +63,18 @@ def start_schedule(
         stride: clearances are checked every ``stride`` steps.
         max_options: delays tried per positioner at most.
         swap_tries: delays (fewest conflicts first) a positioner no delay fits tries to swap at.
+        l_paths: positioners no delay of the straight move fits try the two L-shaped moves.
 
     Returns:
-        The delays; ``unplaced`` lists the positioners no delay fitted (delay 0).
+        The delays; ``unplaced`` lists the positioners no delay fitted (delay 0); ``corner``
+        the corners of the L-shaped moves placed.
     """
     inst = scenario.instrument
     n = scenario.n_positioners
     pairs = scenario.pairs
     delay = np.zeros(n, dtype=np.int64)
     if n == 0 or len(pairs) == 0:
-        return StartSchedule(delay, np.zeros(0, dtype=np.int64), 0)
+        return StartSchedule(delay, np.zeros(0, dtype=np.int64), 0, np.full((n, 2), np.nan))
     move = np.ceil(np.max(np.abs(scenario.target - scenario.start) / step_rad, axis=1) - 1e-9).astype(np.int64)
     horizon = int(np.ceil(slack * move.max()))
     # Joints of every straight full-speed move at steps 0..horizon.
