@@ -34,6 +34,21 @@ def _pair_clearance(sc, pairs, qa, qb):
     return clearance_between(sc.instrument, sc.base_xy[a], sc.orient[a], qa[a], sc.base_xy[b], sc.orient[b], qb[b]).min(axis=-1)
 
 
+def _placed_pairs_worst_and_floor(sc, settings, step_rad, schedule, horizon, corner=None):
+    """Pairs of placed positioners, their smallest clearance along the scheduled moves (every
+    second step and the last) and the floor the schedule promises them."""
+    placed = np.ones(sc.n_positioners, dtype=bool)
+    placed[schedule.unplaced] = False
+    pairs = sc.pairs[placed[sc.pairs[:, 0]] & placed[sc.pairs[:, 1]]]
+    floor = np.minimum(settings.margin_mm, 0.9 * np.minimum(_pair_clearance(sc, pairs, sc.start, sc.start),
+                                                            _pair_clearance(sc, pairs, sc.target, sc.target)))
+    worst = np.full(len(pairs), np.inf)
+    for t in [*range(0, horizon + 1, 2), horizon]:
+        q = _delayed_moves(sc, step_rad, schedule.delay_steps, t, corner)
+        worst = np.minimum(worst, _pair_clearance(sc, pairs, q, q))
+    return pairs, worst, floor
+
+
 @pytest.mark.parametrize(("instrument", "n", "seed"), [("desi", 500, 0), ("desi", 200, 3)])
 def test_placed_moves_keep_their_margins_and_end_in_time(instrument, n, seed):
     sc = make_scenario(instrument, n, "random", seed)
@@ -45,15 +60,7 @@ def test_placed_moves_keep_their_margins_and_end_in_time(instrument, n, seed):
     assert np.all(delay >= 0) and np.all(delay % 4 == 0)
     assert np.all(delay + move <= np.ceil(1.2 * move.max()))
     assert np.count_nonzero(delay) > 0  # DESI 500 needs some: targets on neighbours' paths
-    placed = np.ones(sc.n_positioners, dtype=bool)
-    placed[schedule.unplaced] = False
-    pairs = sc.pairs[placed[sc.pairs[:, 0]] & placed[sc.pairs[:, 1]]]
-    floor = np.minimum(settings.margin_mm, 0.9 * np.minimum(_pair_clearance(sc, pairs, sc.start, sc.start),
-                                                            _pair_clearance(sc, pairs, sc.target, sc.target)))
-    worst = np.full(len(pairs), np.inf)
-    for t in range(0, int(np.ceil(1.2 * move.max())) + 1, 2):
-        q = _delayed_moves(sc, step_rad, delay, t)
-        worst = np.minimum(worst, _pair_clearance(sc, pairs, q, q))
+    pairs, worst, floor = _placed_pairs_worst_and_floor(sc, settings, step_rad, schedule, int(np.ceil(1.2 * move.max())))
     assert np.all(worst >= floor - 1e-9)
     # Without the delays the same pairs would not keep their margins.
     undelayed = np.full(len(pairs), np.inf)
@@ -84,15 +91,7 @@ def test_l_shaped_moves_place_positioners_no_delay_fits():
     # every move ends in time.
     move = np.ceil(np.max(np.abs(sc.target - sc.start) / step_rad, axis=1) - 1e-9)
     horizon = int(np.ceil(1.2 * move.max()))
-    placed = np.ones(sc.n_positioners, dtype=bool)
-    placed[schedule.unplaced] = False
-    pairs = sc.pairs[placed[sc.pairs[:, 0]] & placed[sc.pairs[:, 1]]]
-    floor = np.minimum(settings.margin_mm, 0.9 * np.minimum(_pair_clearance(sc, pairs, sc.start, sc.start),
-                                                            _pair_clearance(sc, pairs, sc.target, sc.target)))
-    worst = np.full(len(pairs), np.inf)
-    for t in [*range(0, horizon + 1, 2), horizon]:
-        q = _delayed_moves(sc, step_rad, schedule.delay_steps, t, schedule.corner)
-        worst = np.minimum(worst, _pair_clearance(sc, pairs, q, q))
+    _, worst, floor = _placed_pairs_worst_and_floor(sc, settings, step_rad, schedule, horizon, schedule.corner)
     assert np.all(worst >= floor - 1e-9)
     assert np.allclose(_delayed_moves(sc, step_rad, schedule.delay_steps, horizon, schedule.corner), sc.target)
     # The planner follows the corner (within half a step: the QP rounds it) and arrives.
