@@ -36,6 +36,11 @@ from fiberplan.scenario import Scenario
 __all__ = ["StartSchedule", "start_schedule"]
 
 
+def _full_speed_steps(a: np.ndarray, b: np.ndarray, step_rad: np.ndarray) -> np.ndarray:
+    """Control steps of each straight full-speed move ``a -> b`` (rows): the slower joint's."""
+    return np.ceil(np.max(np.abs(b - a) / step_rad, axis=1) - 1e-9).astype(np.int64)
+
+
 @dataclass(frozen=True)
 class StartSchedule:
     """Start delays (control steps) per positioner, and how they were found."""
@@ -75,7 +80,7 @@ def start_schedule(
     delay = np.zeros(n, dtype=np.int64)
     if n == 0 or len(pairs) == 0:
         return StartSchedule(delay, np.zeros(0, dtype=np.int64), 0, np.full((n, 2), np.nan))
-    move = np.ceil(np.max(np.abs(scenario.target - scenario.start) / step_rad, axis=1) - 1e-9).astype(np.int64)
+    move = _full_speed_steps(scenario.start, scenario.target, step_rad)
     horizon = int(np.ceil(slack * move.max()))
     # Joints of every straight full-speed move at steps 0..horizon.
     path = np.concatenate([scenario.start[:, None], straight_path(scenario.start, scenario.target, step_rad, horizon)], axis=1)
@@ -136,12 +141,11 @@ def start_schedule(
     corner = np.full((n, 2), np.nan)
 
     def reroute(i: int) -> bool:
-        """Place ``i`` on one of its two L-shaped moves (one joint, then the other), if one fits."""
+        """Place the unplaced ``i`` on one of its two L-shaped moves (one joint, then the other), if one fits."""
         s_i, t_i = scenario.start[i], scenario.target[i]
-        saved = seg_start[i].copy(), seg_end[i].copy(), int(move[i]), clean[nb_row[i]].copy(), bool(done[i])
+        saved = seg_start[i].copy(), seg_end[i].copy(), int(move[i]), clean[nb_row[i]].copy()
         for c in (np.array([t_i[0], s_i[1]]), np.array([s_i[0], t_i[1]])):
-            k1 = int(np.ceil(np.max(np.abs(c - s_i) / step_rad) - 1e-9))
-            k2 = int(np.ceil(np.max(np.abs(t_i - c) / step_rad) - 1e-9))
+            k1, k2 = (int(k) for k in _full_speed_steps(np.array([s_i, c]), np.array([c, t_i]), step_rad))
             if k1 == 0 or k2 == 0 or k1 + k2 > horizon:
                 continue
             leg1 = straight_path(s_i[None], c[None], step_rad, k1)[0]
@@ -151,12 +155,13 @@ def start_schedule(
             seg_start[i], seg_end[i] = ss[:, 0], se[:, 0]
             move[i] = k1 + k2
             clean[nb_row[i]] = False
-            done[i] = False
+            done[i] = False  # place() checks against the others only
             d = place(i)[0]
+            done[i] = True
             if d is not None:
-                delay[i], corner[i], done[i] = d, c, True
+                delay[i], corner[i] = d, c
                 return True
-            seg_start[i], seg_end[i], move[i], clean[nb_row[i]], done[i] = saved
+            seg_start[i], seg_end[i], move[i], clean[nb_row[i]] = saved
         return False
 
     order = np.lexsort((np.arange(n), -move))
