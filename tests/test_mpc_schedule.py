@@ -8,14 +8,17 @@ import pytest
 
 from fiberplan.generate import make_scenario
 from fiberplan.geometry import clearance_between
+from fiberplan.metrics import arrival_times, lower_bound_s
 from fiberplan.planners import make_settings, plan
-from fiberplan.planners.mpc_schedule import start_schedule
+from fiberplan.planners.mpc_schedule import space_time_path, start_schedule, timed_waypoints
 from fiberplan.verify import verify
 
 
-def _delayed_moves(sc, step_rad, delay, t, corner=None):
+def _delayed_moves(sc, step_rad, delay, t, corner=None, timed=None):
     """Joints at step ``t`` of every full-speed move started after ``delay`` (an independent
-    restatement): straight, or through ``corner`` where it is not NaN (one leg, then the other)."""
+    restatement): straight, or through ``corner`` where it is not NaN (one leg, then the other),
+    or along a timed route (``timed``: i -> (waypoints, departures), each leg at full speed
+    from its departure)."""
     k = np.clip(t - delay, 0, None)[:, None]
     q = sc.start + np.clip(sc.target - sc.start, -k * step_rad, k * step_rad)
     if corner is not None:
@@ -26,6 +29,13 @@ def _delayed_moves(sc, step_rad, delay, t, corner=None):
                 q[i] = sc.start[i] + np.clip(corner[i] - sc.start[i], -ki * step_rad, ki * step_rad)
             else:
                 q[i] = corner[i] + np.clip(sc.target[i] - corner[i], -(ki - k1) * step_rad, (ki - k1) * step_rad)
+    for i, (waypoints, depart) in (timed or {}).items():
+        m = int(np.searchsorted(depart, t, side="right")) - 1  # the last leg begun by step t
+        if m < 0:
+            q[i] = sc.start[i]
+            continue
+        frm = sc.start[i] if m == 0 else waypoints[m - 1]
+        q[i] = frm + np.clip(waypoints[m] - frm, -(t - depart[m]) * step_rad, (t - depart[m]) * step_rad)
     return q
 
 
@@ -116,8 +126,8 @@ def test_planner_holds_each_positioner_until_its_start():
     report = verify(sc, result.trajectory)
     assert report.n_collisions == 0
     settings = make_settings("mpc", sc)
-    delay = start_schedule(sc, sc.instrument.speeds_rad_s * settings.dt_s, settings.margin_mm,
-                           l_paths=settings.schedule_l_paths).delay_steps
+    delay = start_schedule(sc, sc.instrument.speeds_rad_s * settings.dt_s, settings.margin_mm, l_paths=settings.schedule_l_paths,
+                           space_time=settings.schedule_space_time, cell_steps=settings.schedule_cell_steps).delay_steps
     assert result.stats["schedule_delayed"] == int(np.count_nonzero(delay)) > 0
     joints = result.trajectory.joints
     delayed = np.flatnonzero(delay)
@@ -129,3 +139,115 @@ def test_planner_holds_each_positioner_until_its_start():
     off = plan(sc, "mpc", {"start_schedule": False})
     assert off.stats["schedule_delayed"] == 0
     assert not np.array_equal(off.trajectory.joints[:5], joints[:5])
+
+
+def test_space_time_path_waits_or_steps_aside_for_a_passing_obstacle():
+    # A 1 x 5 corridor and a second row beside it; an obstacle sweeps the corridor from the
+    # goal end toward the start during layers 2-6, so the path has to step into the side row.
+    n_layers, shape = 12, (2, 5)
+    free = np.ones((n_layers + 1, *shape), dtype=bool)
+    for layer in range(2, 7):
+        free[layer, 0, 6 - layer] = False  # the obstacle at corridor cell 4, 3, 2, 1, 0
+    free[:, 1, :] = False
+    free[:, 1, 2] = True  # one side cell, free throughout
+    cells = space_time_path(free, (0, 0), (0, 4))
+    assert cells is not None
+    assert tuple(cells[0]) == (0, 0) and tuple(cells[-1]) == (0, 4)
+    assert np.all(np.abs(np.diff(cells, axis=0)) <= 1)  # one neighbouring cell per layer at most
+    assert all(free[layer][tuple(c)] for layer, c in enumerate(cells))
+    assert free[len(cells) - 1:, 0, 4].all()  # the goal stays free from the arrival on
+    # The earliest arrival: brute force over all paths of the same graph agrees.
+    reach = {(0, 0)}
+    for layer in range(1, n_layers + 1):
+        reach = {(a + da, b + db) for a, b in reach for da in (-1, 0, 1) for db in (-1, 0, 1)
+                 if 0 <= a + da < 2 and 0 <= b + db < 5 and free[layer, a + da, b + db]}
+        if (0, 4) in reach and free[layer:, 0, 4].all():
+            break
+    assert len(cells) - 1 == layer
+    # Blocked: the goal taken at the last layer, or the start walled in.
+    blocked = free.copy()
+    blocked[-1, 0, 4] = False
+    assert space_time_path(blocked, (0, 0), (0, 4)) is None
+    walled = free.copy()
+    walled[1, :, :2] = False
+    walled[1, 0, 0] = True
+    walled[2, :, :2] = False
+    assert space_time_path(walled, (0, 0), (0, 4)) is None
+
+
+def test_timed_waypoints_keep_the_turns_and_the_waits():
+    cells = np.array([(0, 0), (0, 0), (1, 1), (2, 2), (2, 2), (2, 2), (2, 3), (2, 4)])
+    coords = np.stack(np.meshgrid(np.arange(3) * 10.0, np.arange(5) * 1.0, indexing="ij"), axis=-1)
+    waypoints, depart = timed_waypoints(cells, coords, cell_steps=4)
+    # Wait one layer, run the diagonal to (2, 2), wait two layers, then run to (2, 4).
+    assert waypoints.tolist() == [[20.0, 2.0], [20.0, 4.0]]
+    assert depart.tolist() == [4, 20]
+
+
+def test_timed_paths_place_positioners_no_straight_or_l_shaped_move_fits():
+    # DESI 500 seed 8: 7 positioners are left unplaced by the straight and L-shaped moves, and
+    # one of them arrives at 2.2 x the bound without the timed paths.
+    sc = make_scenario("desi", 500, "random", 8)
+    settings = make_settings("mpc", sc)
+    assert settings.schedule_space_time  # DESI's default
+    step_rad = sc.instrument.speeds_rad_s * settings.dt_s
+    k = settings.schedule_cell_steps
+    before = start_schedule(sc, step_rad, settings.margin_mm, l_paths=True)
+    schedule = start_schedule(sc, step_rad, settings.margin_mm, l_paths=True, space_time=True, cell_steps=k)
+    timed = schedule.timed
+    assert len(timed) >= 5
+    assert set(timed) <= set(before.unplaced) and len(schedule.unplaced) == len(before.unplaced) - len(timed)
+    keep = np.ones(sc.n_positioners, dtype=bool)
+    keep[list(timed)] = False
+    assert np.array_equal(schedule.delay_steps[keep], before.delay_steps[keep])
+    move = np.ceil(np.max(np.abs(sc.target - sc.start) / step_rad, axis=1) - 1e-9)
+    horizon = int(np.ceil(1.2 * move.max()))
+    last_leg, arrive = {}, {}
+    for i, (waypoints, depart) in timed.items():
+        # Waypoints on the grid from the start (whole cells per joint) but the target; each leg
+        # ends by the next departure; the first departure is the start delay; the route ends
+        # at the target within the schedule's deadline (half a cell more: the target is not
+        # on the grid).
+        assert schedule.delay_steps[i] == depart[0] and np.all(depart % k == 0) and np.all(np.diff(depart) > 0)
+        assert np.array_equal(waypoints[-1], sc.target[i])
+        cells = (waypoints[:-1] - sc.start[i]) / (k * step_rad)
+        assert np.allclose(cells, np.round(cells))
+        legs = np.ceil(np.max(np.abs(np.diff(np.vstack([sc.start[i], waypoints]), axis=0)) / step_rad, axis=1) - 1e-9)
+        assert np.all(depart[:-1] + legs[:-1] <= depart[1:])
+        assert depart[-1] + legs[-1] <= horizon + k // 2 + 1
+        last_leg[i], arrive[i] = depart[-1], depart[-1] + legs[-1]
+    # At every layer (a multiple of cell_steps) before its last leg, and from its arrival on,
+    # each timed positioner keeps its floor to every placed neighbour as scheduled.
+    placed = np.ones(sc.n_positioners, dtype=bool)
+    placed[schedule.unplaced] = False
+    rows = np.flatnonzero(np.isin(sc.pairs, list(timed)).any(axis=1) & placed[sc.pairs].all(axis=1))
+    pairs = sc.pairs[rows]
+    floor = np.minimum(settings.margin_mm, 0.9 * np.minimum(_pair_clearance(sc, pairs, sc.start, sc.start),
+                                                            _pair_clearance(sc, pairs, sc.target, sc.target)))
+    checked = 0
+    for t in range(0, horizon + 1, k):
+        q = _delayed_moves(sc, step_rad, schedule.delay_steps, t, schedule.corner, timed)
+        c = _pair_clearance(sc, pairs, q, q)
+        on_grid = np.array([all(not (last_leg[i] < t < arrive[i]) for i in pair if i in timed) for pair in pairs])
+        assert np.all(c[on_grid] >= floor[on_grid] - 1e-9)
+        checked += int(on_grid.sum())
+    assert checked > 10 * len(pairs)
+    # The planner holds each until its first departure, passes every waypoint in order and
+    # arrives, with no collision; the makespan is within 1.2 x the bound, where without the
+    # timed paths it is not.
+    result = plan(sc, "mpc")
+    assert result.stats["schedule_timed"] == len(timed)
+    assert verify(sc, result.trajectory).n_collisions == 0
+    joints = result.trajectory.joints
+    for i, (waypoints, depart) in timed.items():
+        assert np.all(joints[: depart[0] + 1, i] == sc.start[i])
+        at = 0
+        for w in waypoints:  # each within half a step (the QP rounds the corners), in order
+            near = np.flatnonzero(np.max(np.abs(joints[at:, i] - w) / step_rad, axis=1) <= 0.5 + 1e-9)
+            assert len(near), (i, w)
+            at += int(near[0])
+        assert np.all(joints[-1, i] == sc.target[i])
+    bound = lower_bound_s(sc)
+    assert np.nanmax(arrival_times(sc, result.trajectory)) <= 1.2 * bound
+    without = plan(sc, "mpc", {"schedule_space_time": False})
+    assert np.nanmax(arrival_times(sc, without.trajectory)) > 1.5 * bound

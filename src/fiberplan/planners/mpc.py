@@ -105,6 +105,10 @@ class MpcSettings:
         schedule_l_paths: a positioner the start schedule cannot place on its straight move
             tries the two L-shaped moves (one joint, then the other) and, if one fits, follows
             it as a route through its corner.
+        schedule_space_time: a positioner still unplaced searches a timed path through a grid
+            of its joint configurations x time around its neighbours as scheduled, and follows
+            it as a route whose waypoints it leaves no earlier than scheduled.
+        schedule_cell_steps: full-speed control steps per grid cell and time layer of that search.
         executor: ``sequential`` or ``parallel``.
         workers: processes of the parallel executor (the planning process counts as one).
         qp_solver: ``osqp`` (persistent workspaces, the fast path) or a qpsolvers backend name.
@@ -140,6 +144,8 @@ class MpcSettings:
     schedule_delay_steps: int = 4
     schedule_slack: float = 1.2
     schedule_l_paths: bool = False
+    schedule_space_time: bool = False
+    schedule_cell_steps: int = 2
     executor: str = "sequential"
     workers: int = 2
     qp_solver: str = "osqp"
@@ -206,7 +212,7 @@ class MpcSettings:
                             ("workers", self.workers), ("osqp_max_iter", self.osqp_max_iter),
                             ("max_neighbour_constraints", self.max_neighbour_constraints), ("detour_max", self.detour_max),
                             ("detour_after_deadlocks", self.detour_after_deadlocks),
-                            ("schedule_delay_steps", self.schedule_delay_steps)):
+                            ("schedule_delay_steps", self.schedule_delay_steps), ("schedule_cell_steps", self.schedule_cell_steps)):
             if int(value) != value or value < 1:
                 raise PlannerError(f"mpc: {name} must be an integer >= 1, found {value}")
         if not (np.isfinite(self.schedule_slack) and self.schedule_slack >= 1):
@@ -242,7 +248,9 @@ ROUTE_PASS = 0.5
 """A detour waypoint counts as passed within this many full steps of it (per joint)."""
 
 
-def route_path(q: np.ndarray, route: np.ndarray, pos: int, step_rad: np.ndarray, n_steps: int) -> np.ndarray:
+def route_path(
+    q: np.ndarray, route: np.ndarray, pos: int, step_rad: np.ndarray, n_steps: int, depart: np.ndarray | None = None, step: int = 0,
+) -> np.ndarray:
     """Saturated path of one positioner along its detour waypoints ``route[pos:]``: ``(n_steps, 2)``.
 
     Each step moves every joint up to a full step toward the current waypoint and passes on to
@@ -251,14 +259,19 @@ def route_path(q: np.ndarray, route: np.ndarray, pos: int, step_rad: np.ndarray,
     waypoints are two steps apart). The part of a step left when a waypoint is reached mid-step
     is not carried over: the path stays on the route's segments, which are what the detour search
     checked for clearance.
+
+    A timed route (``depart``, from the start schedule's space-time search) leaves for waypoint
+    ``m`` no earlier than control step ``depart[m]``, holding where it is until then; ``step``
+    is the control step of the path's first move.
     """
     out = np.empty((n_steps, 2))
     p = q.astype(float)
     last = len(route) - 1
     for k in range(n_steps):
-        while pos < last and np.all(np.abs(p - route[pos]) <= ROUTE_PASS * step_rad):
+        while pos < last and np.all(np.abs(p - route[pos]) <= ROUTE_PASS * step_rad) and (depart is None or step + k >= depart[pos + 1]):
             pos += 1
-        p = p + np.clip(route[pos] - p, -step_rad, step_rad)
+        if depart is None or step + k >= depart[pos]:
+            p = p + np.clip(route[pos] - p, -step_rad, step_rad)
         out[k] = p
     return out
 
@@ -553,7 +566,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     # Start schedule (mpc_schedule): each positioner's reference starts after its delay.
     schedule_t0 = time.perf_counter()
     schedule = start_schedule(scenario, step_rad, settings.margin_mm, settings.schedule_delay_steps, settings.schedule_slack,
-                              l_paths=settings.schedule_l_paths) if settings.start_schedule else None
+                              l_paths=settings.schedule_l_paths, space_time=settings.schedule_space_time,
+                              cell_steps=settings.schedule_cell_steps) if settings.start_schedule else None
     schedule_wall_s = time.perf_counter() - schedule_t0
     start_step = schedule.delay_steps if schedule is not None else np.zeros(n, dtype=np.int64)
 
@@ -589,6 +603,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     n_dead = np.zeros(n, dtype=np.int64)
     routes: dict[int, np.ndarray] = {}
     route_pos: dict[int, int] = {}
+    route_depart: dict[int, np.ndarray] = {}  # timed routes (space-time schedule): departure step per waypoint
     n_routes = np.zeros(n, dtype=np.int64)
     n_detour_failed = 0
     n_pair_resolutions = 0
@@ -602,6 +617,12 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             route_pos[who] = 0
             if start_step[who] == 0:
                 plan[who] = own_plan[who] = route_path(q[who], routes[who], 0, step_rad, H)
+        # Timed paths leave each waypoint no earlier than scheduled.
+        for who, (waypoints, depart) in schedule.timed.items():
+            routes[who], route_depart[who] = waypoints, depart
+            route_pos[who] = 0
+            if start_step[who] == 0:
+                plan[who] = own_plan[who] = route_path(q[who], waypoints, 0, step_rad, H, depart, 0)
 
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
     try:
@@ -625,6 +646,11 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             first = np.maximum(wait_first, 0)
             first_moving = ~at_goal_final[first] & (step - last_best_ever[first] < settings.stop_after_stalled_windows * window)
             unstarted = step < start_step  # waiting for its scheduled start
+            # Holding at a waypoint of a timed route until its scheduled departure.
+            for who, depart in route_depart.items():
+                pos = route_pos[who]
+                if pos + 1 < len(depart) and step < depart[pos + 1] and np.all(np.abs(q[who] - routes[who][pos]) <= ROUTE_PASS * step_rad):
+                    unstarted[who] = True
             last_best_ever = np.where(better | (waiting & first_moving) | unstarted, step, last_best_ever)
 
             # --- conflict detection (depends only on the configuration and the published plans).
@@ -704,6 +730,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
                     for k, (who, route) in enumerate(routed):
                         routes[who] = route
                         route_pos[who] = 0
+                        route_depart.pop(who, None)
                         if k == 0:
                             escalate[who] = False
                             level[who] = 1
@@ -728,6 +755,9 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             for who in list(routes):
                 if level[who] >= 2:
                     del routes[who], route_pos[who]
+                    route_depart.pop(who, None)
+                elif who in route_depart and route_pos[who] + 1 < len(routes[who]) and step < route_depart[who][route_pos[who] + 1]:
+                    continue  # its next departure is later
                 elif np.all(np.abs(q[who] - routes[who][route_pos[who]]) <= ROUTE_PASS * step_rad):
                     # A waypoint passed (within half a step: the QP rounds the corners of the
                     # reference, which runs through the waypoints) counts as progress.
@@ -735,6 +765,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
                     last_progress[who] = last_best_ever[who] = step
                     if route_pos[who] == len(routes[who]):
                         del routes[who], route_pos[who]
+                        route_depart.pop(who, None)
 
             # Priorities: deadlocked positioners first, in the order they were first found
             # deadlocked (sticky, so two of them never swap roles); then the longest time-to-go.
@@ -790,6 +821,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             first_arrived |= leader_home & release
             for w in [w for w in after_wait if first_arrived[w]]:
                 route = after_wait.pop(w)
+                route_depart.pop(w, None)
                 if np.all(q[w] == wait_q[w]):  # else the route does not start where it is
                     routes[w] = route
                     route_pos[w] = 0
@@ -811,8 +843,10 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             goal_prev = goal
             ref = straight_path(q, goal, step_rad, H)
             for who in routes:
-                if not unstarted[who]:
-                    ref[who] = route_path(q[who], routes[who], route_pos[who], step_rad, H)
+                # (A timed route holding at a waypoint until its departure is marked unstarted
+                # too; its reference shows the departure ahead.)
+                if not unstarted[who] or (who in route_depart and step >= start_step[who]):
+                    ref[who] = route_path(q[who], routes[who], route_pos[who], step_rad, H, route_depart.get(who), step)
             q_next = ref[:, 0].copy()
             new_plan = ref.copy()
             n_qp = 0
@@ -915,6 +949,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         "schedule_delayed": int(np.count_nonzero(start_step)),
         "schedule_unplaced": len(schedule.unplaced) if schedule is not None else 0,
         "schedule_l_paths": int(np.count_nonzero(~np.isnan(schedule.corner[:, 0]))) if schedule is not None else 0,
+        "schedule_timed": len(schedule.timed) if schedule is not None else 0,
         "schedule_swaps": schedule.swaps if schedule is not None else 0,
         "schedule_wall_s": schedule_wall_s,
     }

@@ -24,7 +24,7 @@ with the QPs and the safety layer. Clearances are checked every ``stride`` steps
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -33,7 +33,7 @@ from fiberplan.kinematics import straight_path
 from fiberplan.layout import neighbour_lists
 from fiberplan.scenario import Scenario
 
-__all__ = ["StartSchedule", "start_schedule"]
+__all__ = ["StartSchedule", "space_time_path", "start_schedule", "timed_waypoints"]
 
 
 def _full_speed_steps(a: np.ndarray, b: np.ndarray, step_rad: np.ndarray) -> np.ndarray:
@@ -49,11 +49,90 @@ class StartSchedule:
     unplaced: np.ndarray
     swaps: int
     corner: np.ndarray  # (N, 2): the corner of a positioner's L-shaped move; NaN rows: straight
+    timed: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # i -> (waypoints, departure steps)
+
+
+def _dilate(mask: np.ndarray) -> np.ndarray:
+    """Cells of a 2-D mask and their 8 neighbours."""
+    grow = mask.copy()
+    grow[1:] |= mask[:-1]
+    grow[:-1] |= mask[1:]
+    grow[:, 1:] |= grow[:, :-1].copy()
+    grow[:, :-1] |= grow[:, 1:].copy()
+    return grow
+
+
+def space_time_path(free: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -> np.ndarray | None:
+    """Earliest path through a grid over time layers, staying at ``goal`` once there.
+
+    Args:
+        free: ``(L + 1, A, B)`` whether each cell may be occupied at each time layer.
+        start: the cell at layer 0.
+        goal: the cell to end in, and stay in up to the last layer.
+
+    Returns:
+        The cells ``(l* + 1, 2)`` at layers ``0..l*``, ``l*`` the earliest layer from which
+        ``goal`` can be held (each layer moves to one of the 8 neighbouring cells or stays);
+        ``None`` if there is none. Backward from ``goal``, each layer's cell is the reachable
+        one nearest ``start`` (Chebyshev), so the path leaves as late as it can: waiting is done
+        at the start, as a delay.
+    """
+    n_layers = free.shape[0]
+    if not free[0][start]:
+        return None
+    reach = np.zeros_like(free)
+    reach[0][start] = True
+    for layer in range(1, n_layers):
+        reach[layer] = _dilate(reach[layer - 1]) & free[layer]
+        if not reach[layer].any():
+            return None
+    # Layers from which the goal stays free to the end.
+    stay = np.flip(np.logical_and.accumulate(np.flip(free[:, goal[0], goal[1]])))
+    ok = np.flatnonzero(reach[:, goal[0], goal[1]] & stay)
+    if len(ok) == 0:
+        return None
+    moves = np.array([(da, db) for da in (-1, 0, 1) for db in (-1, 0, 1)])
+    cells = [np.array(goal)]
+    s = np.array(start)
+    for layer in range(int(ok[0]), 0, -1):
+        cand = cells[-1] + moves
+        inside = np.all((cand >= 0) & (cand < free.shape[1:]), axis=1)
+        cand = cand[inside]
+        cand = cand[reach[layer - 1][cand[:, 0], cand[:, 1]]]
+        cells.append(cand[np.argmin(np.max(np.abs(cand - s), axis=1))])
+    return np.array(cells[::-1])
+
+
+def timed_waypoints(cells: np.ndarray, coords: np.ndarray, cell_steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """Waypoints and departure steps of a space-time path (:func:`space_time_path`).
+
+    Args:
+        cells: the path's cells at layers ``0..l*``.
+        coords: ``(A, B, 2)`` joint configuration of every cell.
+        cell_steps: control steps per layer.
+
+    Returns:
+        ``(waypoints (M, 2), depart (M,))``: the path runs at full speed through the cells
+        where its direction changes; ``depart[m]`` is the control step at which it leaves for
+        ``waypoints[m]`` (a stay at a cell delays the next departure).
+    """
+    d = np.diff(cells, axis=0)
+    points, depart = [], []
+    k = 0
+    while k < len(d):
+        e = k
+        while e + 1 < len(d) and np.all(d[e + 1] == d[k]):
+            e += 1
+        if np.any(d[k] != 0):
+            points.append(coords[tuple(cells[e + 1])])
+            depart.append(k * cell_steps)
+        k = e + 1
+    return np.array(points).reshape(-1, 2), np.array(depart, dtype=np.int64)
 
 
 def start_schedule(
     scenario: Scenario, step_rad: np.ndarray, margin_mm: float, delay_steps: int = 4, slack: float = 1.2, stride: int = 2,
-    max_options: int = 64, swap_tries: int = 1, l_paths: bool = False,
+    max_options: int = 64, swap_tries: int = 1, l_paths: bool = False, space_time: bool = False, cell_steps: int = 2,
 ) -> StartSchedule:
     """Start delays such that the delayed moves keep their margins pairwise (greedy).
 
@@ -69,10 +148,14 @@ def start_schedule(
         max_options: delays tried per positioner at most.
         swap_tries: delays (fewest conflicts first) a positioner no delay fits tries to swap at.
         l_paths: positioners no delay of the straight move fits try the two L-shaped moves.
+        space_time: positioners still unplaced search a timed path (joint grid x time) around
+            every neighbour as scheduled (:func:`space_time_path`).
+        cell_steps: full-speed control steps per grid cell and time layer of that search.
 
     Returns:
         The delays; ``unplaced`` lists the positioners no delay fitted (delay 0); ``corner``
-        the corners of the L-shaped moves placed.
+        the corners of the L-shaped moves placed; ``timed`` the waypoints and departure steps
+        of the timed paths placed (their delay is their first departure).
     """
     inst = scenario.instrument
     n = scenario.n_positioners
@@ -164,6 +247,81 @@ def start_schedule(
             seg_start[i], seg_end[i], move[i], clean[nb_row[i]] = saved
         return False
 
+    timed: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    lim = inst.limits_rad
+    points = all(c.start_mm == c.end_mm for c in inst.capsules)  # capsules that are discs: point distances
+    n_layers = horizon // cell_steps
+    # Every layer is checked at each step within half a layer of it.
+    samples = np.arange(0, n_layers * cell_steps + cell_steps // 2 + 1)
+    offsets = np.arange(-(cell_steps // 2), cell_steps // 2 + 1)
+    window = np.clip(np.arange(n_layers + 1)[:, None] * cell_steps + offsets[None, :], 0, len(samples) - 1)
+
+    def search_timed(i: int) -> bool:
+        """Place the unplaced ``i`` on a timed path through a grid of its joint configurations, if one fits.
+
+        A cell is ``cell_steps`` full steps per joint, so every move to a neighbouring cell takes
+        one layer of ``cell_steps`` steps. A cell is free at a layer when its clearance to every
+        neighbour, as scheduled, at every step within half a layer is at least the pair's floor.
+        Between those steps ``i`` is within half a cell of the cell, unchecked, as the greedy
+        pass leaves the motion between its samples unchecked: the schedule only orders the
+        moves, the QPs and the safety layer keep the real distances. Adding half a cell's
+        motion to the floor (0.25 mm on DESI) measured worse: DESI N = 500 seeds 0-99,
+        makespan <= 1.2 x bound on 86 seeds, against 93 without.
+        """
+        cell = cell_steps * step_rad
+        s_i, t_i = scenario.start[i], scenario.target[i]
+        lo = s_i - np.floor((s_i - lim[:, 0]) / cell + 1e-9) * cell
+        shape = tuple(int(v) for v in np.floor((lim[:, 1] - lo) / cell + 1e-9) + 1)
+        axes = [lo[k] + np.arange(shape[k]) * cell[k] for k in range(2)]
+        coords = np.stack(np.meshgrid(axes[0], axes[1], indexing="ij"), axis=-1)
+        s_cell = tuple(int(v) for v in np.round((s_i - lo) / cell))
+        g_cell = tuple(int(v) for v in np.clip(np.round((t_i - lo) / cell), 0, np.array(shape) - 1))
+        if s_cell == g_cell:
+            return False
+        coords[s_cell], coords[g_cell] = s_i, t_i
+        flat = coords.reshape(-1, 2)
+        c_start, c_end = capsule_segments(inst, base[i:i + 1], orient[i:i + 1], flat[:, None, :])
+        c_start, c_end = c_start[:, 0], c_end[:, 0]  # (cells, C, 2)
+        free = np.ones((len(flat), n_layers + 1), dtype=bool)
+        # Bounding boxes of i's capsule segments at every cell, for a quick lower bound.
+        box_lo = np.minimum(c_start, c_end).min(axis=1)
+        box_hi = np.maximum(c_start, c_end).max(axis=1)
+        for j, row in zip(nb[i].tolist(), nb_row[i].tolist(), strict=True):
+            at = np.clip(samples - delay[j], 0, horizon)
+            used, inv = np.unique(at, return_inverse=True)
+            j_start, j_end = seg_start[j, used], seg_end[j, used]  # (U, C, 2)
+            # Cells whose box keeps clear of the box around all of j's capsules as scheduled.
+            j_lo, j_hi = np.minimum(j_start, j_end).min(axis=(0, 1)), np.maximum(j_start, j_end).max(axis=(0, 1))
+            gap = np.maximum(np.maximum(j_lo - box_hi, box_lo - j_hi), 0.0)
+            close = np.flatnonzero(np.hypot(gap[:, 0], gap[:, 1]) - combo_radii.max() < floor[row])
+            if len(close) == 0:
+                continue
+            if points:  # squared distances against squared thresholds: no square roots
+                dx = c_start[close][:, None, ca, 0] - j_start[None, :, cb, 0]
+                dy = c_start[close][:, None, ca, 1] - j_start[None, :, cb, 1]
+                ok = np.all(dx * dx + dy * dy >= (floor[row] + combo_radii) ** 2, axis=2)
+            else:
+                dist = segment_distance(c_start[close][:, None, ca], c_end[close][:, None, ca], j_start[None, :, cb], j_end[None, :, cb])[0]
+                ok = np.all(dist - combo_radii >= floor[row], axis=2)
+            ok = ok[:, inv]  # (close, samples)
+            free[close] &= ok[:, window].all(axis=2)
+        # At layer 0 the start keeps its floor by definition; a departure at once is checked
+        # at the next cell, over the steps within half a layer of layer 1.
+        free[np.ravel_multi_index(s_cell, shape), 0] = True
+        cells = space_time_path(free.T.reshape((n_layers + 1, *shape)), s_cell, g_cell)
+        if cells is None:
+            return False
+        waypoints, depart = timed_waypoints(cells, coords, cell_steps)
+        # i's configuration at every step, for the positioners searched after it.
+        at_layers = coords[cells[:, 0], cells[:, 1]]
+        steps = np.arange(horizon + 1)
+        p_i = np.stack([np.interp(steps, np.arange(len(cells)) * cell_steps, at_layers[:, k]) for k in range(2)], axis=1)
+        ss, se = capsule_segments(inst, base[i:i + 1], orient[i:i + 1], p_i[:, None, :])
+        seg_start[i], seg_end[i] = ss[:, 0], se[:, 0]
+        delay[i], move[i] = 0, (len(cells) - 1) * cell_steps
+        timed[i] = (waypoints, depart)
+        return True
+
     order = np.lexsort((np.arange(n), -move))
     unplaced = np.zeros(n, dtype=bool)
     swaps = 0
@@ -202,4 +360,10 @@ def start_schedule(
         for i in np.flatnonzero(unplaced)[np.lexsort((np.flatnonzero(unplaced), -move[unplaced]))].tolist():
             if reroute(i):
                 unplaced[i] = False
-    return StartSchedule(delay, np.flatnonzero(unplaced), swaps, corner)
+    if space_time:
+        for i in np.flatnonzero(unplaced)[np.lexsort((np.flatnonzero(unplaced), -move[unplaced]))].tolist():
+            if search_timed(i):
+                unplaced[i] = False
+    for i, (_, depart) in timed.items():
+        delay[i] = depart[0]
+    return StartSchedule(delay, np.flatnonzero(unplaced), swaps, corner, timed)
