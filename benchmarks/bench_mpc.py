@@ -93,7 +93,7 @@ def run_one(instrument: str, n: int, kind: str, seed: int, planner: str, overrid
         "qp_solves", "qp_failures", "qp_inaccurate", "qp_fraction", "qp_solve_ms_median", "qp_solve_ms_p95",
         "qp_iterations_median", "safety_holds", "deadlocks_detected", "deadlocks_resolved", "deadlocks_remaining",
         "retreats", "yielding_positioners", "n_steps", "waiting_rules", "detours", "pair_resolutions",
-        "schedule_delayed", "schedule_unplaced", "schedule_l_paths", "schedule_swaps", "schedule_wall_s",
+        "schedule_delayed", "schedule_unplaced", "schedule_l_paths", "schedule_timed", "schedule_swaps", "schedule_wall_s",
     ):
         if key in stats:
             record[key] = stats[key]
@@ -198,6 +198,7 @@ def print_table() -> None:
 # DESI result files drawn by ``figure``: label -> file (missing files are skipped).
 FIGURE_DESI = {
     "mpc, current": "mpc_desi.json",
+    "mpc, start schedule without timed paths": "mpc_desi_before_space_time.json",
     "mpc, start schedule without L-shaped moves": "mpc_desi_before_l_paths.json",
     "mpc, before the start schedule (7a53f8e)": "mpc_desi_before_schedule.json",
 }
