@@ -28,7 +28,7 @@ import numpy as np
 from fiberplan.geometry import capsule_segments, capsule_tables, clearance_between, point_to_segment, segment_distance
 from fiberplan.scenario import Scenario
 
-__all__ = ["PairResolution", "detour_route", "pair_resolution"]
+__all__ = ["PairResolution", "detour_route", "dilate", "pair_resolution"]
 
 
 def _cross_clearance(scenario: Scenario, i: int, configs: np.ndarray, others: np.ndarray, q_others: np.ndarray) -> np.ndarray:
@@ -47,6 +47,16 @@ def _clearance_to(scenario: Scenario, i: int, configs: np.ndarray, others: np.nd
     if len(others) == 0:
         return np.full(len(configs), np.inf)
     return _cross_clearance(scenario, i, configs, others, q_others).min(axis=1)
+
+
+def dilate(mask: np.ndarray) -> np.ndarray:
+    """Cells of a 2-D mask and their 8 neighbours (one grid move in any direction)."""
+    grow = mask.copy()
+    grow[1:] |= mask[:-1]
+    grow[:-1] |= mask[1:]
+    grow[:, 1:] |= grow[:, :-1].copy()
+    grow[:, :-1] |= grow[:, 1:].copy()
+    return grow
 
 
 def _densify(waypoints: np.ndarray, spacing: np.ndarray) -> np.ndarray:
@@ -159,12 +169,7 @@ class _Grid:
             dist[front] = d
             if targets is not None and np.any(front & targets):
                 break
-            grow = front.copy()
-            grow[1:] |= front[:-1]
-            grow[:-1] |= front[1:]
-            grow[:, 1:] |= grow[:, :-1].copy()
-            grow[:, :-1] |= grow[:, 1:].copy()
-            front = grow & free & (dist < 0)
+            front = dilate(front) & free & (dist < 0)
             d += 1
         return dist
 

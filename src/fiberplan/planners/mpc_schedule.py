@@ -31,6 +31,7 @@ import numpy as np
 from fiberplan.geometry import capsule_segments, capsule_tables, segment_distance
 from fiberplan.kinematics import straight_path
 from fiberplan.layout import neighbour_lists
+from fiberplan.planners.mpc_detour import dilate
 from fiberplan.scenario import Scenario
 
 __all__ = ["StartSchedule", "space_time_path", "start_schedule", "timed_waypoints"]
@@ -52,16 +53,6 @@ class StartSchedule:
     timed: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # i -> (waypoints, departure steps)
 
 
-def _dilate(mask: np.ndarray) -> np.ndarray:
-    """Cells of a 2-D mask and their 8 neighbours."""
-    grow = mask.copy()
-    grow[1:] |= mask[:-1]
-    grow[:-1] |= mask[1:]
-    grow[:, 1:] |= grow[:, :-1].copy()
-    grow[:, :-1] |= grow[:, 1:].copy()
-    return grow
-
-
 def space_time_path(free: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -> np.ndarray | None:
     """Earliest path through a grid over time layers, staying at ``goal`` once there.
 
@@ -74,8 +65,8 @@ def space_time_path(free: np.ndarray, start: tuple[int, int], goal: tuple[int, i
         The cells ``(l* + 1, 2)`` at layers ``0..l*``, ``l*`` the earliest layer from which
         ``goal`` can be held (each layer moves to one of the 8 neighbouring cells or stays);
         ``None`` if there is none. Backward from ``goal``, each layer's cell is the reachable
-        one nearest ``start`` (Chebyshev), so the path leaves as late as it can: waiting is done
-        at the start, as a delay.
+        one nearest ``start`` (Chebyshev), so the path tends to wait at its start (a delay)
+        rather than on its way.
     """
     n_layers = free.shape[0]
     if not free[0][start]:
@@ -83,7 +74,7 @@ def space_time_path(free: np.ndarray, start: tuple[int, int], goal: tuple[int, i
     reach = np.zeros_like(free)
     reach[0][start] = True
     for layer in range(1, n_layers):
-        reach[layer] = _dilate(reach[layer - 1]) & free[layer]
+        reach[layer] = dilate(reach[layer - 1]) & free[layer]
         if not reach[layer].any():
             return None
     # Layers from which the goal stays free to the end.
