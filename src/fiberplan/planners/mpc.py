@@ -33,8 +33,10 @@ At every control step (``formulations/mpc.md``):
 
 Before the first step (on by default for DESI), every positioner gets a start delay such that
 the delayed straight moves keep their margins pairwise where a delay can; a positioner no
-delay fits may take an L-shaped move instead, followed as a route through its corner
-(:mod:`fiberplan.planners.mpc_schedule`). Each positioner holds until its start.
+delay fits may take an L-shaped move instead, followed as a route through its corner, or
+else a timed path found by a search over its joint grid x time, followed as a route whose
+waypoints it leaves no earlier than scheduled (:mod:`fiberplan.planners.mpc_schedule`). Each
+positioner holds until its start.
 """
 
 from __future__ import annotations

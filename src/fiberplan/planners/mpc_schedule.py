@@ -15,7 +15,9 @@ fits nowhere the swap is undone and it starts at once (``unplaced``: the reactiv
 deadlock rules handle it, as without a schedule). With ``l_paths``, each unplaced positioner then
 tries the two L-shaped moves (alpha first, or beta first, through the corner where one joint has
 arrived and the other not yet moved) with the same delays and checks; the planner follows a
-placed one as a route through its corner.
+placed one as a route through its corner. With ``space_time``, those still unplaced search a
+timed path over their joint grid x time around everyone as scheduled (:func:`space_time_path`),
+which the planner follows as a route leaving each waypoint no earlier than its departure step.
 
 The schedule only sets when each positioner's reference starts: collision avoidance stays
 with the QPs and the safety layer. Clearances are checked every ``stride`` steps. See
