@@ -648,12 +648,13 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             first = np.maximum(wait_first, 0)
             first_moving = ~at_goal_final[first] & (step - last_best_ever[first] < settings.stop_after_stalled_windows * window)
             unstarted = step < start_step  # waiting for its scheduled start
-            # Holding at a waypoint of a timed route until its scheduled departure.
+            # Holding: unstarted, or at a waypoint of a timed route until its next departure.
+            holding = unstarted.copy()
             for who, depart in route_depart.items():
                 pos = route_pos[who]
                 if pos + 1 < len(depart) and step < depart[pos + 1] and np.all(np.abs(q[who] - routes[who][pos]) <= ROUTE_PASS * step_rad):
-                    unstarted[who] = True
-            last_best_ever = np.where(better | (waiting & first_moving) | unstarted, step, last_best_ever)
+                    holding[who] = True
+            last_best_ever = np.where(better | (waiting & first_moving) | holding, step, last_best_ever)
 
             # --- conflict detection (depends only on the configuration and the published plans).
             # Two positioners holding still at their goals need no QP: nothing changes.
@@ -670,7 +671,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # Stalled: the best time-to-go has not improved for a window.
             improved = ttg_final < best_ttg - progress_eps
             best_ttg = np.where(improved, ttg_final, best_ttg)
-            last_progress = np.where(improved | at_goal_final | waiting | unstarted, step, last_progress)
+            last_progress = np.where(improved | at_goal_final | waiting | holding, step, last_progress)
             best_ttg = np.where(waiting, ttg_final, best_ttg)
             stalled = (step - last_progress >= window) & ~at_goal_final
             new_dead = stalled & (level == 0)
@@ -792,7 +793,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             fold = yielding | (level == 2)
             ever_yielded |= yielding
             goal = goal_final.copy()
-            goal[unstarted] = q[unstarted]
+            goal[holding] = q[holding]
             # Folding (yielders and level-2 retreats) moves beta to the datum with alpha held.
             # Letting alpha head for its target meanwhile measured no better on DESI (N = 500
             # failures, seeds 0-11 / 36-47: 17 / 16 held, 16 / 19 not) and worse on MOONS
@@ -838,16 +839,16 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             counters.waiting |= waiting
             goal[fold, 1] = datum[fold, 1]
             for who in routes:
-                if not unstarted[who]:
+                if not holding[who]:
                     goal[who] = routes[who][route_pos[who]]
             goal[level == 3, 1] = datum[level == 3, 1]
 
             goal_prev = goal
             ref = straight_path(q, goal, step_rad, H)
             for who in routes:
-                # (A timed route holding at a waypoint until its departure is marked unstarted
-                # too; its reference shows the departure ahead.)
-                if not unstarted[who] or (who in route_depart and step >= start_step[who]):
+                # (A timed route holding at a waypoint follows its route: it shows the
+                # departure ahead.)
+                if not unstarted[who]:
                     ref[who] = route_path(q[who], routes[who], route_pos[who], step_rad, H, route_depart.get(who), step)
             q_next = ref[:, 0].copy()
             new_plan = ref.copy()

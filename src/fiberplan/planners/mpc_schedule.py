@@ -317,6 +317,11 @@ def start_schedule(
 
     order = np.lexsort((np.arange(n), -move))
     unplaced = np.zeros(n, dtype=bool)
+
+    def unplaced_longest_first() -> list[int]:
+        who = np.flatnonzero(unplaced)
+        return who[np.lexsort((who, -move[who]))].tolist()
+
     swaps = 0
     for i in order.tolist():
         d, js, options, ok = place(i)
@@ -350,11 +355,11 @@ def start_schedule(
     if l_paths:
         # Unplaced positioners try the two L-shaped moves, which sweep other places than the
         # straight one, against every neighbour as scheduled.
-        for i in np.flatnonzero(unplaced)[np.lexsort((np.flatnonzero(unplaced), -move[unplaced]))].tolist():
+        for i in unplaced_longest_first():
             if reroute(i):
                 unplaced[i] = False
     if space_time:
-        for i in np.flatnonzero(unplaced)[np.lexsort((np.flatnonzero(unplaced), -move[unplaced]))].tolist():
+        for i in unplaced_longest_first():
             if search_timed(i):
                 unplaced[i] = False
     for i, (_, depart) in timed.items():
