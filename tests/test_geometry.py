@@ -7,7 +7,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from fiberplan.geometry import capsule_segments, pair_clearance, segment_distance
+from fiberplan.geometry import capsule_segments, capsule_tables, combo_clearances, pair_clearance, segment_distance
 from fiberplan.instrument import load_instrument
 
 coord = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
@@ -122,6 +122,30 @@ def test_clearance_gradient_matches_finite_differences(name, q, orient, offset):
             # at kinks (closest point switching, parallel segments) the derivative is one-sided; skip those
             ok = one_sided_agree
             np.testing.assert_allclose(grad[0, ok, k], fd[ok], atol=2e-5)
+
+
+@pytest.mark.parametrize("name", list(INSTRUMENTS))
+def test_combo_clearances_equal_segment_distance_bit_for_bit(name):
+    # The planners' searches use the per-shape formulas; a schedule must not change with them.
+    inst = INSTRUMENTS[name]
+    rng = np.random.default_rng(7)
+    n = 20000
+    lim = inst.limits_rad
+    base_j = rng.uniform(-1.2, 1.2, (n, 2)) * inst.pitch_mm
+    start_i, end_i = capsule_segments(inst, np.zeros((n, 2)), np.zeros(n), rng.uniform(lim[:, 0], lim[:, 1], (n, 2)))
+    start_j, end_j = capsule_segments(inst, base_j, rng.uniform(-np.pi, np.pi, n), rng.uniform(lim[:, 0], lim[:, 1], (n, 2)))
+    _, _, _, combos, radii = capsule_tables(inst)
+    ca, cb = combos[:, 0], combos[:, 1]
+    expected = segment_distance(start_i[:, ca], end_i[:, ca], start_j[:, cb], end_j[:, cb])[0] - radii
+    assert (expected < 0).any()  # colliding pairs are among the samples
+    _, start_mm, end_mm, _, _ = capsule_tables(inst)
+    if (start_mm != end_mm).any():  # and crossing segments, where a segment-segment combination exists
+        assert (expected <= -radii).any()
+    np.testing.assert_array_equal(combo_clearances(inst, start_i, end_i, start_j, end_j), expected)
+    # Leading axes broadcast: a few configurations of i against all of j.
+    grid = combo_clearances(inst, start_i[:3, None], end_i[:3, None], start_j[None], end_j[None])
+    assert grid.shape == (3, n, len(combos))
+    np.testing.assert_array_equal(grid[[0, 1, 2], [0, 1, 2]], expected[:3])
 
 
 def test_leading_time_axes_are_supported():

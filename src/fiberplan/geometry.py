@@ -132,6 +132,59 @@ def segment_distance(
     return dist, s, t
 
 
+def _point_segment_sq(
+    px: np.ndarray, py: np.ndarray, ax: np.ndarray, ay: np.ndarray, dx: np.ndarray, dy: np.ndarray, dd: np.ndarray,
+) -> np.ndarray:
+    """Squared distance from points ``p`` to segments ``a + u d`` of positive length ``dd = d . d``."""
+    u = np.minimum(np.maximum(((px - ax) * dx + (py - ay) * dy) / dd, 0.0), 1.0)
+    ex = px - (ax + u * dx)
+    ey = py - (ay + u * dy)
+    return ex * ex + ey * ey
+
+
+def combo_clearances(
+    instrument: Instrument, p_start: np.ndarray, p_end: np.ndarray, q_start: np.ndarray, q_end: np.ndarray
+) -> np.ndarray:
+    """Clearances ``(..., K)`` of the capsule combinations between two positioners' capsules.
+
+    The same values as ``segment_distance(p[..., ca, :], q[..., cb, :])[0] - radii`` (``ca, cb,
+    radii`` from :func:`capsule_tables`), for planners' searches: only the distance, and per
+    combination the cheapest formula its capsule shapes allow (a disc is a zero-length
+    segment): point to point, point to segment, or segment to segment. The capsule arrays are
+    ``(..., C, 2)`` with broadcastable leading axes.
+    """
+    _, start_mm, end_mm, combos, radii = capsule_tables(instrument)
+    disc = start_mm == end_mm
+    out = []
+    for k, (a, b) in enumerate(combos.tolist()):
+        p0x, p0y = p_start[..., a, 0], p_start[..., a, 1]
+        q0x, q0y = q_start[..., b, 0], q_start[..., b, 1]
+        if disc[a] and disc[b]:
+            dx, dy = p0x - q0x, p0y - q0y
+            sq = dx * dx + dy * dy
+        elif disc[a] or disc[b]:
+            if disc[a]:  # p is the point, q the segment
+                px, py, ax, ay, ex, ey = p0x, p0y, q0x, q0y, q_end[..., b, 0], q_end[..., b, 1]
+            else:
+                px, py, ax, ay, ex, ey = q0x, q0y, p0x, p0y, p_end[..., a, 0], p_end[..., a, 1]
+            dx, dy = ex - ax, ey - ay
+            sq = _point_segment_sq(px, py, ax, ay, dx, dy, dx * dx + dy * dy)
+        else:  # closest at an end point unless they cross (segment_distance)
+            p1x, p1y, q1x, q1y = p_end[..., a, 0], p_end[..., a, 1], q_end[..., b, 0], q_end[..., b, 1]
+            d1x, d1y, d2x, d2y = p1x - p0x, p1y - p0y, q1x - q0x, q1y - q0y
+            d1, d2 = d1x * d1x + d1y * d1y, d2x * d2x + d2y * d2y
+            sq = np.minimum(
+                np.minimum(_point_segment_sq(p0x, p0y, q0x, q0y, d2x, d2y, d2), _point_segment_sq(p1x, p1y, q0x, q0y, d2x, d2y, d2)),
+                np.minimum(_point_segment_sq(q0x, q0y, p0x, p0y, d1x, d1y, d1), _point_segment_sq(q1x, q1y, p0x, p0y, d1x, d1y, d1)),
+            )
+            rx, ry = q0x - p0x, q0y - p0y
+            crossing = ((d1x * ry - d1y * rx) * (d1x * (q1y - p0y) - d1y * (q1x - p0x)) < 0.0) & (
+                (d2x * (-ry) - d2y * (-rx)) * (d2x * (p1y - q0y) - d2y * (p1x - q0x)) < 0.0)
+            sq = np.where(crossing, 0.0, sq)
+        out.append(np.sqrt(sq) - radii[k])
+    return np.stack(out, axis=-1)
+
+
 @dataclass(frozen=True)
 class PairClearance:
     """Clearances of the same-layer capsule combinations of positioner pairs.

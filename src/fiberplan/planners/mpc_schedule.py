@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fiberplan.geometry import capsule_segments, capsule_tables, segment_distance
+from fiberplan.geometry import capsule_segments, capsule_tables, combo_clearances
 from fiberplan.kinematics import straight_path
 from fiberplan.layout import neighbour_lists
 from fiberplan.planners.mpc_detour import dilate
@@ -75,19 +75,22 @@ def space_time_path(free: np.ndarray, start: tuple[int, int], goal: tuple[int, i
         return None
     reach = np.zeros_like(free)
     reach[0][start] = True
-    for layer in range(1, n_layers):
-        reach[layer] = dilate(reach[layer - 1]) & free[layer]
-        if not reach[layer].any():
-            return None
     # Layers from which the goal stays free to the end.
     stay = np.flip(np.logical_and.accumulate(np.flip(free[:, goal[0], goal[1]])))
-    ok = np.flatnonzero(reach[:, goal[0], goal[1]] & stay)
-    if len(ok) == 0:
+    if not stay.any():
         return None
+    arrive = 0
+    while not (reach[arrive][goal] and stay[arrive]):
+        arrive += 1
+        if arrive == n_layers:
+            return None
+        reach[arrive] = dilate(reach[arrive - 1]) & free[arrive]
+        if not reach[arrive].any():
+            return None
     moves = np.array([(da, db) for da in (-1, 0, 1) for db in (-1, 0, 1)])
     cells = [np.array(goal)]
     s = np.array(start)
-    for layer in range(int(ok[0]), 0, -1):
+    for layer in range(arrive, 0, -1):
         cand = cells[-1] + moves
         inside = np.all((cand >= 0) & (cand < free.shape[1:]), axis=1)
         cand = cand[inside]
@@ -165,14 +168,11 @@ def start_schedule(
     # Capsule segments of every move at every step, computed once: (N, steps, C, 2) each.
     seg_start, seg_end = capsule_segments(inst, base, orient, np.swapaxes(path, 0, 1))
     seg_start, seg_end = np.ascontiguousarray(np.swapaxes(seg_start, 0, 1)), np.ascontiguousarray(np.swapaxes(seg_end, 0, 1))
-    _, _, _, combos, combo_radii = capsule_tables(inst)
-    ca, cb = combos[:, 0], combos[:, 1]
+    combo_radii = capsule_tables(inst)[4]
 
     def moving_min(i: np.ndarray, ti: np.ndarray, j: np.ndarray, tj: np.ndarray) -> np.ndarray:
         """Clearance of ``i`` after ``ti`` steps of its move to ``j`` after ``tj`` (index arrays, broadcast)."""
-        dist = segment_distance(seg_start[i, ti][..., ca, :], seg_end[i, ti][..., ca, :],
-                                seg_start[j, tj][..., cb, :], seg_end[j, tj][..., cb, :])[0]
-        return (dist - combo_radii).min(axis=-1)
+        return combo_clearances(inst, seg_start[i, ti], seg_end[i, ti], seg_start[j, tj], seg_end[j, tj]).min(axis=-1)
 
     a, b = pairs[:, 0], pairs[:, 1]
     # Step 0 is the start and the last step the target of every move.
@@ -242,7 +242,6 @@ def start_schedule(
 
     timed: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     lim = inst.limits_rad
-    points = all(c.start_mm == c.end_mm for c in inst.capsules)  # capsules that are discs: point distances
     n_layers = horizon // cell_steps
     # Every layer is checked at each step within half a layer of it.
     samples = np.arange(0, n_layers * cell_steps + cell_steps // 2 + 1)
@@ -280,7 +279,7 @@ def start_schedule(
         box_lo = np.minimum(c_start, c_end).min(axis=1)
         box_hi = np.maximum(c_start, c_end).max(axis=1)
         for j, row in zip(nb[i].tolist(), nb_row[i].tolist(), strict=True):
-            at = np.clip(samples - delay[j], 0, horizon)
+            at = np.clip(samples - delay[j], 0, move[j])  # j holds its target after its move
             used, inv = np.unique(at, return_inverse=True)
             j_start, j_end = seg_start[j, used], seg_end[j, used]  # (U, C, 2)
             # Cells whose box keeps clear of the box around all of j's capsules as scheduled.
@@ -289,13 +288,7 @@ def start_schedule(
             close = np.flatnonzero(np.hypot(gap[:, 0], gap[:, 1]) - combo_radii.max() < floor[row])
             if len(close) == 0:
                 continue
-            if points:  # squared distances against squared thresholds: no square roots
-                dx = c_start[close][:, None, ca, 0] - j_start[None, :, cb, 0]
-                dy = c_start[close][:, None, ca, 1] - j_start[None, :, cb, 1]
-                ok = np.all(dx * dx + dy * dy >= (floor[row] + combo_radii) ** 2, axis=2)
-            else:
-                dist = segment_distance(c_start[close][:, None, ca], c_end[close][:, None, ca], j_start[None, :, cb], j_end[None, :, cb])[0]
-                ok = np.all(dist - combo_radii >= floor[row], axis=2)
+            ok = combo_clearances(inst, c_start[close][:, None], c_end[close][:, None], j_start[None], j_end[None]).min(axis=2) >= floor[row]
             ok = ok[:, inv]  # (close, samples)
             free[close] &= ok[:, window].all(axis=2)
         # At layer 0 the start keeps its floor by definition; a departure at once is checked
