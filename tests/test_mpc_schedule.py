@@ -234,8 +234,8 @@ def test_timed_paths_place_positioners_no_straight_or_l_shaped_move_fits():
     assert checked > 10 * len(pairs)
     # The planner holds each until its first departure, passes every waypoint in order and
     # arrives, with no collision; the makespan is within 1.2 x the bound, where without the
-    # timed paths it is not.
-    result = plan(sc, "mpc")
+    # timed paths it is not (the repair, DESI's default, is left out: this schedule has none).
+    result = plan(sc, "mpc", {"schedule_repair": False})
     assert result.stats["schedule_timed"] == len(timed)
     assert verify(sc, result.trajectory).n_collisions == 0
     joints = result.trajectory.joints
@@ -251,3 +251,46 @@ def test_timed_paths_place_positioners_no_straight_or_l_shaped_move_fits():
     assert np.nanmax(arrival_times(sc, result.trajectory)) <= 1.2 * bound
     without = plan(sc, "mpc", {"schedule_space_time": False})
     assert np.nanmax(arrival_times(sc, without.trajectory)) > 1.5 * bound
+
+
+def test_repair_places_a_positioner_first_and_its_neighbour_after_it():
+    # DESI 500 seed 71: positioner 334 fits no delay, no L-shaped move and no timed path
+    # around its neighbours as scheduled, and arrives at 1.39 x the bound without the repair.
+    sc = make_scenario("desi", 500, "random", 71)
+    settings = make_settings("mpc", sc)
+    step_rad = sc.instrument.speeds_rad_s * settings.dt_s
+    k = settings.schedule_cell_steps
+    kw = {"l_paths": True, "space_time": True, "cell_steps": k}
+    before = start_schedule(sc, step_rad, settings.margin_mm, **kw)
+    schedule = start_schedule(sc, step_rad, settings.margin_mm, **kw, repair=True)
+    assert 334 in before.unplaced and 334 not in schedule.unplaced and 334 in schedule.timed
+    assert len(schedule.unplaced) < len(before.unplaced)
+    # Some neighbour of 334 gave way: its delay, corner or route changed.
+    changed = [j for j in range(sc.n_positioners) if j != 334 and (
+        schedule.delay_steps[j] != before.delay_steps[j]
+        or not np.array_equal(schedule.corner[j], before.corner[j], equal_nan=True)
+        or (j in schedule.timed) != (j in before.timed))]
+    assert changed and set(changed) <= {int(j) for j in sc.pairs[(sc.pairs == 334).any(axis=1)].ravel()}
+    # Every pair of placed positioners keeps its floor at every layer, as scheduled (restated
+    # independently), except while a timed positioner runs its last leg off the grid to its target.
+    move = np.ceil(np.max(np.abs(sc.target - sc.start) / step_rad, axis=1) - 1e-9)
+    horizon = int(np.ceil(1.2 * move.max()))
+    off_grid = {}
+    for i, (waypoints, depart) in schedule.timed.items():
+        last = np.ceil(np.max(np.abs(waypoints[-1] - (waypoints[-2] if len(waypoints) > 1 else sc.start[i])) / step_rad) - 1e-9)
+        off_grid[i] = (depart[-1], depart[-1] + last)
+    placed = np.ones(sc.n_positioners, dtype=bool)
+    placed[schedule.unplaced] = False
+    pairs = sc.pairs[placed[sc.pairs].all(axis=1)]
+    floor = np.minimum(settings.margin_mm, 0.9 * np.minimum(_pair_clearance(sc, pairs, sc.start, sc.start),
+                                                            _pair_clearance(sc, pairs, sc.target, sc.target)))
+    for t in range(0, horizon + 1, k):
+        q = _delayed_moves(sc, step_rad, schedule.delay_steps, t, schedule.corner, schedule.timed)
+        c = _pair_clearance(sc, pairs, q, q)
+        on_grid = np.array([all(not (off_grid[i][0] < t < off_grid[i][1]) for i in pair if i in off_grid) for pair in pairs])
+        assert np.all(c[on_grid] >= floor[on_grid] - 1e-9), t
+    # The planner with the repair (DESI's default) arrives within 1.2 x the bound, without collisions.
+    assert settings.schedule_repair
+    result = plan(sc, "mpc")
+    assert verify(sc, result.trajectory).n_collisions == 0
+    assert np.nanmax(arrival_times(sc, result.trajectory)) <= 1.2 * lower_bound_s(sc)

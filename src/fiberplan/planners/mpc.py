@@ -111,6 +111,9 @@ class MpcSettings:
             of its joint configurations x time around its neighbours as scheduled, and follows
             it as a route whose waypoints it leaves no earlier than scheduled.
         schedule_cell_steps: full-speed control steps per grid cell and time layer of that search.
+        schedule_repair: a positioner no timed path fits goes first: each placed neighbour in turn
+            leaves the schedule, the positioner searches around the others, and the neighbour is
+            placed again after it (``mpc_schedule.start_schedule``, ``repair``).
         executor: ``sequential`` or ``parallel``.
         workers: processes of the parallel executor (the planning process counts as one).
         qp_solver: ``osqp`` (persistent workspaces, the fast path) or a qpsolvers backend name.
@@ -148,6 +151,7 @@ class MpcSettings:
     schedule_l_paths: bool = False
     schedule_space_time: bool = False
     schedule_cell_steps: int = 2
+    schedule_repair: bool = False
     executor: str = "sequential"
     workers: int = 2
     qp_solver: str = "osqp"
@@ -569,7 +573,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     schedule_t0 = time.perf_counter()
     schedule = start_schedule(scenario, step_rad, settings.margin_mm, settings.schedule_delay_steps, settings.schedule_slack,
                               l_paths=settings.schedule_l_paths, space_time=settings.schedule_space_time,
-                              cell_steps=settings.schedule_cell_steps) if settings.start_schedule else None
+                              cell_steps=settings.schedule_cell_steps, repair=settings.schedule_repair) if settings.start_schedule else None
     schedule_wall_s = time.perf_counter() - schedule_t0
     start_step = schedule.delay_steps if schedule is not None else np.zeros(n, dtype=np.int64)
 
