@@ -31,11 +31,12 @@ At every control step (``formulations/mpc.md``):
 5. The run ends when all are at their targets, when nothing can progress any more
    (``stop_after_stalled_windows``), or at the time limit.
 
-Before the first step (on by default for DESI), every positioner gets a start delay such that
-the delayed straight moves keep their margins pairwise where a delay can; a positioner no
-delay fits may take an L-shaped move instead, followed as a route through its corner, or
-else a timed path found by a search over its joint grid x time, followed as a route whose
-waypoints it leaves no earlier than scheduled (:mod:`fiberplan.planners.mpc_schedule`). Each
+Before the first step (on by default for DESI and MOONS), every positioner gets a start delay
+such that the delayed straight moves keep their margins pairwise where a delay can; a
+positioner no delay fits may take an L-shaped move instead, followed as a route through its
+corner, or else a timed path found by a search over its joint grid x time, followed as a route
+whose waypoints it leaves no earlier than scheduled; one no timed path fits may go first, a
+neighbour being placed again after it (:mod:`fiberplan.planners.mpc_schedule`). Each
 positioner holds until its start.
 """
 
