@@ -294,3 +294,20 @@ def test_repair_places_a_positioner_first_and_its_neighbour_after_it():
     result = plan(sc, "mpc")
     assert verify(sc, result.trajectory).n_collisions == 0
     assert np.nanmax(arrival_times(sc, result.trajectory)) <= 1.2 * lower_bound_s(sc)
+
+
+def test_progress_along_a_route_is_not_taken_for_a_deadlock():
+    # DESI 500 seed 69: positioner 39's L-shaped move turns alpha first, which does not bring
+    # its slower beta closer to its target; measured by its straight time-to-go it "stalls"
+    # for a window, is boosted as deadlocked and plans through neighbour 65, which then needs a
+    # pair resolution and arrives at 1.60 x the bound.
+    sc = make_scenario("desi", 500, "random", 69)
+    bound = lower_bound_s(sc)
+    assert make_settings("mpc", sc).route_progress  # DESI's default
+    along = plan(sc, "mpc")
+    straight = plan(sc, "mpc", {"route_progress": False})
+    for result in (along, straight):
+        assert verify(sc, result.trajectory).n_collisions == 0
+    assert along.stats["deadlocks_detected"] < straight.stats["deadlocks_detected"]
+    assert along.stats["pair_resolutions"] == 0 < straight.stats["pair_resolutions"]
+    assert np.nanmax(arrival_times(sc, along.trajectory)) <= 1.2 * bound < 1.5 * bound < np.nanmax(arrival_times(sc, straight.trajectory))

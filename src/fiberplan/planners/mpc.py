@@ -115,6 +115,9 @@ class MpcSettings:
         schedule_repair: a positioner no timed path fits goes first: each placed neighbour in turn
             leaves the schedule, the positioner searches around the others, and the neighbour is
             placed again after it (``mpc_schedule.start_schedule``, ``repair``).
+        route_progress: a positioner on a route (an L-shaped move, a timed path, a detour)
+            progresses when its time-to-go along the route improves, not only its straight
+            time-to-go to the target (which the first leg of an L-shaped move need not improve).
         executor: ``sequential`` or ``parallel``.
         workers: processes of the parallel executor (the planning process counts as one).
         qp_solver: ``osqp`` (persistent workspaces, the fast path) or a qpsolvers backend name.
@@ -153,6 +156,7 @@ class MpcSettings:
     schedule_space_time: bool = False
     schedule_cell_steps: int = 2
     schedule_repair: bool = False
+    route_progress: bool = False
     executor: str = "sequential"
     workers: int = 2
     qp_solver: str = "osqp"
@@ -630,6 +634,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             route_pos[who] = 0
             if start_step[who] == 0:
                 plan[who] = own_plan[who] = route_path(q[who], waypoints, 0, step_rad, H, depart, 0)
+        if settings.route_progress:
+            best_ttg[list(routes)] = np.inf  # measured along their routes
 
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
     try:
@@ -673,11 +679,17 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
                 sel = cand[c_min < settings.conflict_radius_mm]
 
             # --- deadlock detection and resolution (deterministic).
-            # Stalled: the best time-to-go has not improved for a window.
-            improved = ttg_final < best_ttg - progress_eps
-            best_ttg = np.where(improved, ttg_final, best_ttg)
+            # Stalled: the best time-to-go has not improved for a window. On a route it is the
+            # time along the route (an L-shaped move's first leg need not bring the slower joint
+            # closer to its target).
+            ttg_progress = ttg_final.copy()
+            for who, route in routes.items() if settings.route_progress else ():
+                rest = np.concatenate([q[who][None], route[route_pos[who]:], goal_final[who][None]])
+                ttg_progress[who] = np.max(np.abs(np.diff(rest, axis=0)) / inst.speeds_rad_s, axis=1).sum()
+            improved = ttg_progress < best_ttg - progress_eps
+            best_ttg = np.where(improved, ttg_progress, best_ttg)
             last_progress = np.where(improved | at_goal_final | waiting | holding, step, last_progress)
-            best_ttg = np.where(waiting, ttg_final, best_ttg)
+            best_ttg = np.where(waiting, ttg_progress, best_ttg)
             stalled = (step - last_progress >= window) & ~at_goal_final
             new_dead = stalled & (level == 0)
             first_dead[new_dead & ~ever_deadlocked] = step
@@ -744,7 +756,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
                             level[who] = 1
                             level_since[who] = step
                             last_progress[who] = step
-                            best_ttg[who] = ttg_final[who]
+                            # Measured along the new route from the next step.
+                            best_ttg[who] = np.inf if settings.route_progress else ttg_final[who]
             level[escalate] = 2
             level_since[escalate] = step
             counters.retreats += int(escalate.sum())
