@@ -198,6 +198,7 @@ def print_table() -> None:
 # DESI result files drawn by ``figure``: label -> file (missing files are skipped).
 FIGURE_DESI = {
     "mpc, current": "mpc_desi.json",
+    "mpc, repair, straight-line progress": "mpc_desi_before_route_progress.json",
     "mpc, timed paths without the repair": "mpc_desi_before_repair.json",
     "mpc, start schedule without timed paths": "mpc_desi_before_space_time.json",
     "mpc, start schedule without L-shaped moves": "mpc_desi_before_l_paths.json",
