@@ -683,9 +683,10 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # time along the route (an L-shaped move's first leg need not bring the slower joint
             # closer to its target).
             ttg_progress = ttg_final.copy()
-            for who, route in routes.items() if settings.route_progress else ():
-                rest = np.concatenate([q[who][None], route[route_pos[who]:], goal_final[who][None]])
-                ttg_progress[who] = np.max(np.abs(np.diff(rest, axis=0)) / inst.speeds_rad_s, axis=1).sum()
+            if settings.route_progress:
+                for who, route in routes.items():
+                    rest = np.concatenate([q[who][None], route[route_pos[who]:], goal_final[who][None]])
+                    ttg_progress[who] = np.max(np.abs(np.diff(rest, axis=0)) / inst.speeds_rad_s, axis=1).sum()
             improved = ttg_progress < best_ttg - progress_eps
             best_ttg = np.where(improved, ttg_progress, best_ttg)
             last_progress = np.where(improved | at_goal_final | waiting | holding, step, last_progress)
