@@ -142,6 +142,7 @@ def test_combo_clearances_equal_segment_distance_bit_for_bit(name):
     if (start_mm != end_mm).any():  # and crossing segments, where a segment-segment combination exists
         assert (expected <= -radii).any()
     np.testing.assert_array_equal(combo_clearances(inst, start_i, end_i, start_j, end_j), expected)
+    np.testing.assert_array_equal(combo_clearances(inst, start_i, end_i, start_j, end_j, smallest=True), expected.min(axis=1))
     # Leading axes broadcast: a few configurations of i against all of j.
     grid = combo_clearances(inst, start_i[:3, None], end_i[:3, None], start_j[None], end_j[None])
     assert grid.shape == (3, n, len(combos))

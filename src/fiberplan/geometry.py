@@ -143,7 +143,8 @@ def _point_segment_sq(
 
 
 def combo_clearances(
-    instrument: Instrument, p_start: np.ndarray, p_end: np.ndarray, q_start: np.ndarray, q_end: np.ndarray
+    instrument: Instrument, p_start: np.ndarray, p_end: np.ndarray, q_start: np.ndarray, q_end: np.ndarray,
+    smallest: bool = False,
 ) -> np.ndarray:
     """Clearances ``(..., K)`` of the capsule combinations between two positioners' capsules.
 
@@ -151,7 +152,8 @@ def combo_clearances(
     radii`` from :func:`capsule_tables`), for planners' searches: only the distance, and per
     combination the cheapest formula its capsule shapes allow (a disc is a zero-length
     segment): point to point, point to segment, or segment to segment. The capsule arrays are
-    ``(..., C, 2)`` with broadcastable leading axes.
+    ``(..., C, 2)`` with broadcastable leading axes. With ``smallest``, only the smallest
+    clearance over the combinations, shape ``(...)``.
     """
     _, start_mm, end_mm, combos, radii = capsule_tables(instrument)
     disc = start_mm == end_mm
@@ -182,7 +184,9 @@ def combo_clearances(
                 (d2x * (-ry) - d2y * (-rx)) * (d2x * (p1y - q0y) - d2y * (p1x - q0x)) < 0.0)
             sq = np.where(crossing, 0.0, sq)
         out.append(np.sqrt(sq) - radii[k])
-    return np.stack(out, axis=-1)
+        if smallest and k:
+            out = [np.minimum(out[0], out[1])]
+    return out[0] if smallest else np.stack(out, axis=-1)
 
 
 @dataclass(frozen=True)

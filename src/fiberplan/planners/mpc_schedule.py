@@ -180,7 +180,7 @@ def start_schedule(
 
     def moving_min(i: np.ndarray, ti: np.ndarray, j: np.ndarray, tj: np.ndarray) -> np.ndarray:
         """Clearance of ``i`` after ``ti`` steps of its move to ``j`` after ``tj`` (index arrays, broadcast)."""
-        return combo_clearances(inst, seg_start[i, ti], seg_end[i, ti], seg_start[j, tj], seg_end[j, tj]).min(axis=-1)
+        return combo_clearances(inst, seg_start[i, ti], seg_end[i, ti], seg_start[j, tj], seg_end[j, tj], smallest=True)
 
     a, b = pairs[:, 0], pairs[:, 1]
     # Step 0 is the start and the last step the target of every move.
@@ -299,7 +299,7 @@ def start_schedule(
             close = np.flatnonzero(np.hypot(gap[:, 0], gap[:, 1]) - combo_radii.max() < floor[row])
             if len(close) == 0:
                 continue
-            ok = combo_clearances(inst, c_start[close][:, None], c_end[close][:, None], j_start[None], j_end[None]).min(axis=2) >= floor[row]
+            ok = combo_clearances(inst, c_start[close][:, None], c_end[close][:, None], j_start[None], j_end[None], smallest=True) >= floor[row]
             ok = ok[:, inv]  # (close, samples)
             free[close] &= ok[:, window].all(axis=2)
         # At layer 0 the start keeps its floor by definition; a departure at once is checked
