@@ -847,6 +847,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
                 if np.all(q[w] == wait_q[w]):  # else the route does not start where it is
                     routes[w] = route
                     route_pos[w] = 0
+                    if settings.route_progress:
+                        best_ttg[w] = np.inf  # measured along the route from the next step
                 else:
                     routes.pop(w, None)
                     route_pos.pop(w, None)
