@@ -44,14 +44,19 @@ def _pair_clearance(sc, pairs, qa, qb):
     return clearance_between(sc.instrument, sc.base_xy[a], sc.orient[a], qa[a], sc.base_xy[b], sc.orient[b], qb[b]).min(axis=-1)
 
 
+def _floor(sc, settings, pairs):
+    """The clearance the schedule promises each pair: the margin, capped at 0.9 x the pair's clearance at the starts and at the targets."""
+    return np.minimum(settings.margin_mm, 0.9 * np.minimum(_pair_clearance(sc, pairs, sc.start, sc.start),
+                                                           _pair_clearance(sc, pairs, sc.target, sc.target)))
+
+
 def _placed_pairs_worst_and_floor(sc, settings, step_rad, schedule, horizon, corner=None):
     """Pairs of placed positioners, their smallest clearance along the scheduled moves (every
     second step and the last) and the floor the schedule promises them."""
     placed = np.ones(sc.n_positioners, dtype=bool)
     placed[schedule.unplaced] = False
     pairs = sc.pairs[placed[sc.pairs[:, 0]] & placed[sc.pairs[:, 1]]]
-    floor = np.minimum(settings.margin_mm, 0.9 * np.minimum(_pair_clearance(sc, pairs, sc.start, sc.start),
-                                                            _pair_clearance(sc, pairs, sc.target, sc.target)))
+    floor = _floor(sc, settings, pairs)
     worst = np.full(len(pairs), np.inf)
     for t in [*range(0, horizon + 1, 2), horizon]:
         q = _delayed_moves(sc, step_rad, schedule.delay_steps, t, corner)
@@ -222,8 +227,7 @@ def test_timed_paths_place_positioners_no_straight_or_l_shaped_move_fits():
     placed[schedule.unplaced] = False
     rows = np.flatnonzero(np.isin(sc.pairs, list(timed)).any(axis=1) & placed[sc.pairs].all(axis=1))
     pairs = sc.pairs[rows]
-    floor = np.minimum(settings.margin_mm, 0.9 * np.minimum(_pair_clearance(sc, pairs, sc.start, sc.start),
-                                                            _pair_clearance(sc, pairs, sc.target, sc.target)))
+    floor = _floor(sc, settings, pairs)
     checked = 0
     for t in range(0, horizon + 1, k):
         q = _delayed_moves(sc, step_rad, schedule.delay_steps, t, schedule.corner, timed)
@@ -282,8 +286,7 @@ def test_repair_places_a_positioner_first_and_its_neighbour_after_it():
     placed = np.ones(sc.n_positioners, dtype=bool)
     placed[schedule.unplaced] = False
     pairs = sc.pairs[placed[sc.pairs].all(axis=1)]
-    floor = np.minimum(settings.margin_mm, 0.9 * np.minimum(_pair_clearance(sc, pairs, sc.start, sc.start),
-                                                            _pair_clearance(sc, pairs, sc.target, sc.target)))
+    floor = _floor(sc, settings, pairs)
     for t in range(0, horizon + 1, k):
         q = _delayed_moves(sc, step_rad, schedule.delay_steps, t, schedule.corner, schedule.timed)
         c = _pair_clearance(sc, pairs, q, q)

@@ -615,6 +615,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     routes: dict[int, np.ndarray] = {}
     route_pos: dict[int, int] = {}
     route_depart: dict[int, np.ndarray] = {}  # timed routes (space-time schedule): departure step per waypoint
+    route_tail: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # route -> time from each waypoint on to the goal
     n_routes = np.zeros(n, dtype=np.int64)
     n_detour_failed = 0
     n_pair_resolutions = 0
@@ -685,8 +686,11 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             ttg_progress = ttg_final.copy()
             if settings.route_progress:
                 for who, route in routes.items():
-                    rest = np.concatenate([q[who][None], route[route_pos[who]:], goal_final[who][None]])
-                    ttg_progress[who] = np.max(np.abs(np.diff(rest, axis=0)) / inst.speeds_rad_s, axis=1).sum()
+                    if route_tail.get(who, (None,))[0] is not route:  # a new route: its legs' times once
+                        legs = np.max(np.abs(np.diff(np.vstack([route, goal_final[who]]), axis=0)) / inst.speeds_rad_s, axis=1)
+                        route_tail[who] = (route, np.append(np.cumsum(legs[::-1])[::-1], 0.0))
+                    pos = route_pos[who]
+                    ttg_progress[who] = np.max(np.abs(route[pos] - q[who]) / inst.speeds_rad_s) + route_tail[who][1][pos]
             improved = ttg_progress < best_ttg - progress_eps
             best_ttg = np.where(improved, ttg_progress, best_ttg)
             last_progress = np.where(improved | at_goal_final | waiting | holding, step, last_progress)
