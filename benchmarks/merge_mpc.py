@@ -3,7 +3,7 @@
 Long sets are measured in pieces (``--first-seed``, ``--budget-s``, one piece per core); this
 adds the extra file's runs of one cell (``kind``, ``N``) to the main file, for the seeds that
 every planner of the extra file finished and the main file lacks, recomputes the summaries and
-records the piece under ``merged_runs`` (its command, date and seeds); a cell the main file
+records the piece under ``merged_runs`` (its command, date, machine and seeds); a cell the main file
 lacks is added whole::
 
     python benchmarks/bench_mpc.py sdss --first-seed 3 --seeds 17 --out /tmp/sdss3.json
@@ -20,6 +20,12 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_mpc
+
+
+def _piece(extra: dict[str, Any]) -> dict[str, Any]:
+    """What ``merged_runs`` records of a piece: its command, date and machine (a piece may have
+    run on another machine than the main file, so its wall times need its own machine)."""
+    return {"command": extra["command"], "date_utc": extra["date_utc"], "machine": extra.get("machine")}
 
 
 def merge(main: dict[str, Any], extra: dict[str, Any], kind: str, n: int) -> dict[str, tuple[int, float]]:
@@ -41,7 +47,7 @@ def merge(main: dict[str, Any], extra: dict[str, Any], kind: str, n: int) -> dic
         for key, value in (("kinds", kind), ("sizes", n)):
             if value not in main["parameters"][key]:
                 main["parameters"][key].append(value)
-        main.setdefault("merged_runs", []).append({"command": extra["command"], "date_utc": extra["date_utc"], "seeds": seeds, "new_cell": True})
+        main.setdefault("merged_runs", []).append({**_piece(extra), "seeds": seeds, "new_cell": True})
         return {p: (c["summary"]["seeds_run"], c["summary"]["success_rate_mean"]) for p, c in ce.items()}
     if not cm or set(cm) != set(ce):
         raise SystemExit(f"cells of {kind} N={n}: main has planners {sorted(cm)}, extra {sorted(ce)}")
@@ -53,7 +59,7 @@ def merge(main: dict[str, Any], extra: dict[str, Any], kind: str, n: int) -> dic
         added |= {r["seed"] for r in new}
         cell["runs"] = sorted(cell["runs"] + new, key=lambda r: r["seed"])
         cell["summary"] = bench_mpc.aggregate_runs(cell["runs"])
-    main.setdefault("merged_runs", []).append({"command": extra["command"], "date_utc": extra["date_utc"], "seeds": sorted(added)})
+    main.setdefault("merged_runs", []).append({**_piece(extra), "seeds": sorted(added)})
     return {p: (c["summary"]["seeds_run"], c["summary"]["success_rate_mean"]) for p, c in cm.items()}
 
 
