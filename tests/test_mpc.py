@@ -402,9 +402,9 @@ def test_instrument_file_sets_mpc_defaults():
     desi = load_instrument("desi")
     assert MpcSettings.for_instrument(desi).start_schedule  # desi.toml: [planner_defaults.mpc]
     assert MpcSettings.for_instrument(desi).schedule_l_paths
-    moons = MpcSettings.for_instrument(load_instrument("moons"))  # moons.toml: timed paths, no L-shaped moves
-    assert moons.start_schedule and moons.schedule_space_time and not moons.schedule_l_paths
-    assert moons.schedule_cell_steps == 16
+    moons = MpcSettings.for_instrument(load_instrument("moons"))  # moons.toml: timed paths and the repair, no L-shaped moves
+    assert moons.start_schedule and moons.schedule_space_time and moons.schedule_repair and not moons.schedule_l_paths
+    assert moons.schedule_cell_steps == 16 and not moons.route_progress
     assert not MpcSettings.for_instrument(load_instrument("sdss")).start_schedule
     wrong = dataclasses.replace(desi, planner_defaults={"mpc": {"start_shedule": True}})
     with pytest.raises(PlannerError, match="start_shedule"):
