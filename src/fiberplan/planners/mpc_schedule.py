@@ -256,19 +256,11 @@ def start_schedule(
     offsets = np.arange(-(cell_steps // 2), cell_steps // 2 + 1)
     window = np.clip(np.arange(n_layers + 1)[:, None] * cell_steps + offsets[None, :], 0, len(samples) - 1)
 
-    def search_timed(i: int, ignore: int = -1) -> bool:
-        """Place the unplaced ``i`` on a timed path through a grid of its joint configurations, if one fits.
-
-        A cell is ``cell_steps`` full steps per joint, so every move to a neighbouring cell takes
-        one layer of ``cell_steps`` steps. A cell is free at a layer when its clearance to every
-        neighbour, as scheduled, at every step within half a layer is at least the pair's floor.
-        Between those steps ``i`` is within half a cell of the cell, unchecked, as the greedy
-        pass leaves the motion between its samples unchecked: the schedule only orders the
-        moves, the QPs and the safety layer keep the real distances. Adding half a cell's
-        motion to the floor (0.25 mm on DESI) measured worse: DESI N = 500 seeds 0-99,
-        makespan <= 1.2 x bound on 86 seeds, against 93 without. The neighbour ``ignore`` is
-        left out (``repair_timed``).
-        """
+    def timed_grid(i: int) -> tuple | None:
+        """The joint grid of ``i``'s timed search and, per neighbour as scheduled, the cells it
+        comes close to and at which layers each of them keeps the pair's floor; ``None`` when
+        the start and the target share a cell. ``repair_timed`` computes it once for all the
+        neighbours it leaves out in turn (the others do not change meanwhile)."""
         cell = cell_steps * step_rad
         s_i, t_i = scenario.start[i], scenario.target[i]
         lo = s_i - np.floor((s_i - lim[:, 0]) / cell + 1e-9) * cell
@@ -278,18 +270,16 @@ def start_schedule(
         s_cell = tuple(int(v) for v in np.round((s_i - lo) / cell))
         g_cell = tuple(int(v) for v in np.clip(np.round((t_i - lo) / cell), 0, np.array(shape) - 1))
         if s_cell == g_cell:
-            return False
+            return None
         coords[s_cell], coords[g_cell] = s_i, t_i
         flat = coords.reshape(-1, 2)
         c_start, c_end = capsule_segments(inst, base[i:i + 1], orient[i:i + 1], flat[:, None, :])
         c_start, c_end = c_start[:, 0], c_end[:, 0]  # (cells, C, 2)
-        free = np.ones((len(flat), n_layers + 1), dtype=bool)
         # Bounding boxes of i's capsule segments at every cell, for a quick lower bound.
         box_lo = np.minimum(c_start, c_end).min(axis=1)
         box_hi = np.maximum(c_start, c_end).max(axis=1)
+        blocks = []
         for j, row in zip(nb[i].tolist(), nb_row[i].tolist(), strict=True):
-            if j == ignore:
-                continue
             at = np.clip(samples - delay[j], 0, move[j])  # j holds its target after its move
             used, inv = np.unique(at, return_inverse=True)
             j_start, j_end = seg_start[j, used], seg_end[j, used]  # (U, C, 2)
@@ -301,7 +291,30 @@ def start_schedule(
                 continue
             ok = combo_clearances(inst, c_start[close][:, None], c_end[close][:, None], j_start[None], j_end[None], smallest=True) >= floor[row]
             ok = ok[:, inv]  # (close, samples)
-            free[close] &= ok[:, window].all(axis=2)
+            blocks.append((j, close, ok[:, window].all(axis=2)))
+        return shape, coords, s_cell, g_cell, blocks
+
+    def search_timed(i: int, ignore: int = -1, grid: tuple | None = None) -> bool:
+        """Place the unplaced ``i`` on a timed path through a grid of its joint configurations, if one fits.
+
+        A cell is ``cell_steps`` full steps per joint, so every move to a neighbouring cell takes
+        one layer of ``cell_steps`` steps. A cell is free at a layer when its clearance to every
+        neighbour, as scheduled, at every step within half a layer is at least the pair's floor.
+        Between those steps ``i`` is within half a cell of the cell, unchecked, as the greedy
+        pass leaves the motion between its samples unchecked: the schedule only orders the
+        moves, the QPs and the safety layer keep the real distances. Adding half a cell's
+        motion to the floor (0.25 mm on DESI) measured worse: DESI N = 500 seeds 0-99,
+        makespan <= 1.2 x bound on 86 seeds, against 93 without. The neighbour ``ignore`` is
+        left out (``repair_timed``); ``grid`` is ``timed_grid(i)`` if already computed.
+        """
+        grid = grid if grid is not None else timed_grid(i)
+        if grid is None:
+            return False
+        shape, coords, s_cell, g_cell, blocks = grid
+        free = np.ones((int(np.prod(shape)), n_layers + 1), dtype=bool)
+        for j, close, ok in blocks:
+            if j != ignore:
+                free[close] &= ok
         # At layer 0 the start keeps its floor by definition; a departure at once is checked
         # at the next cell, over the steps within half a layer of layer 1.
         free[np.ravel_multi_index(s_cell, shape), 0] = True
@@ -337,11 +350,16 @@ def start_schedule(
     def repair_timed(i: int) -> bool:
         """Place the unplaced ``i`` first: a placed neighbour leaves the schedule, ``i`` searches
         around the others, and the neighbour is placed again after it; undone if it fits nowhere."""
+        grid = None
         for j in nb[i][np.lexsort((nb[i], -move[nb[i]]))].tolist():
             if unplaced[j]:
                 continue
+            if grid is None:
+                grid = timed_grid(i)
+                if grid is None:
+                    return False
             saved = state([i, j])
-            if search_timed(i, ignore=j):
+            if search_timed(i, ignore=j, grid=grid):
                 # j again, on its straight move first, against everyone as now scheduled.
                 ss, se = capsule_segments(inst, base[j:j + 1], orient[j:j + 1], path[j][:, None, :])
                 seg_start[j], seg_end[j], move[j], corner[j] = ss[:, 0], se[:, 0], straight_move[j], np.nan
