@@ -405,7 +405,9 @@ def test_instrument_file_sets_mpc_defaults():
     moons = MpcSettings.for_instrument(load_instrument("moons"))  # moons.toml: timed paths and the repair, no L-shaped moves
     assert moons.start_schedule and moons.schedule_space_time and moons.schedule_repair and not moons.schedule_l_paths
     assert moons.schedule_cell_steps == 16 and not moons.route_progress
-    assert not MpcSettings.for_instrument(load_instrument("sdss")).start_schedule
+    sdss = MpcSettings.for_instrument(load_instrument("sdss"))  # sdss.toml: the MOONS settings
+    assert sdss.start_schedule and sdss.schedule_space_time and sdss.schedule_repair and not sdss.schedule_l_paths
+    assert sdss.schedule_cell_steps == 16
     wrong = dataclasses.replace(desi, planner_defaults={"mpc": {"start_shedule": True}})
     with pytest.raises(PlannerError, match="start_shedule"):
         MpcSettings.for_instrument(wrong)
