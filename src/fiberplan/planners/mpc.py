@@ -31,7 +31,7 @@ At every control step (``formulations/mpc.md``):
 5. The run ends when all are at their targets, when nothing can progress any more
    (``stop_after_stalled_windows``), or at the time limit.
 
-Before the first step (on by default for DESI and MOONS), every positioner gets a start delay
+Before the first step (on by default for every instrument preset), every positioner gets a start delay
 such that the delayed straight moves keep their margins pairwise where a delay can; a
 positioner no delay fits may take an L-shaped move instead, followed as a route through its
 corner, or else a timed path found by a search over its joint grid x time, followed as a route
