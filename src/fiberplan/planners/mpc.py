@@ -683,8 +683,9 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # Stalled: the best time-to-go has not improved for a window. On a route it is the
             # time along the route (an L-shaped move's first leg need not bring the slower joint
             # closer to its target).
-            ttg_progress = ttg_final.copy()
+            ttg_progress = ttg_final
             if settings.route_progress:
+                ttg_progress = ttg_final.copy()  # ttg_final itself is used below
                 for who, route in routes.items():
                     if route_tail.get(who, (None,))[0] is not route:  # a new route: its legs' times once
                         legs = np.max(np.abs(np.diff(np.vstack([route, goal_final[who]]), axis=0)) / inst.speeds_rad_s, axis=1)
