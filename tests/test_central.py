@@ -142,11 +142,11 @@ def test_a_colliding_candidate_is_reported_failed(crossing: Scenario, monkeypatc
 @pytest.mark.parametrize(
     ("overrides", "match"),
     [
-        ({"mode": "fastest"}, "mode must be 'time' or 'energy'"),
-        ({"steps": 1}, "steps must be an integer >= 2"),
+        ({"mode": "fastest"}, "'mode' must be one of time, energy, found 'fastest'"),
+        ({"steps": 1}, r"'steps' = 1 is outside its valid range integer in \[2, 2000\]"),
         ({"warm_start": []}, "warm_start needs at least one start"),
         ({"warm_start": ["central"]}, "cannot name 'central'"),
-        ({"margin_mm": -1.0}, "margin_mm must be a finite number >= 0"),
+        ({"margin_mm": -1.0}, r"'margin_mm' = -1.0 mm is outside its valid range \[0, 10\] mm"),
     ],
 )
 def test_bad_settings(crossing: Scenario, overrides: dict, match: str) -> None:

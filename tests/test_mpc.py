@@ -100,7 +100,7 @@ def test_default_time_budget_is_the_dnfs(name):
         ({"max_input_change": 0.0}, "max_input_change"),
         ({"stop_after_stalled_windows": -1}, "stop_after_stalled_windows"),
         ({"deadlock_progress_fraction": 1.5}, "deadlock_progress_fraction"),
-        ({"osqp_eps": "nan"}, "'osqp_eps' must be a number, found 'nan'"),
+        ({"osqp_eps": "nan"}, "'osqp_eps' must be a finite number, found 'nan'"),
         ({"wait_rules": 1}, "'wait_rules' must be true or false"),
         ({"schedule_slack": 0.9}, "schedule_slack"),
         ({"schedule_delay_steps": 0}, "schedule_delay_steps"),

@@ -65,7 +65,7 @@ def test_local_sweep_records_failures_and_skips_finished(tmp_path):
     table = pd.read_parquet(spec.out)
     failed = table[table["status"] == "error"]
     assert len(failed) == 4 and (failed["setting.dt_s"] == -1.0).all()
-    assert failed["error"].str.contains("dt_s must be > 0").all()
+    assert failed["error"].str.contains("'dt_s' = -1.0 s is outside its valid range").all()
     ok = table[table["status"] == "ok"]
     assert (ok["success_rate"] == 1.0).all() and ok["collisions"].notna().all()
     positioners = pd.read_parquet(spec.positioner_out)

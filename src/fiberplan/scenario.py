@@ -27,7 +27,7 @@ File format (JSON, one file; documented in the README)::
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from fiberplan._atomic import atomic_path
+from fiberplan._keys import check_keys
 from fiberplan.errors import InstrumentError, ScenarioError
 from fiberplan.geometry import min_pair_clearance
 from fiberplan.instrument import Instrument, instrument_from_dict, load_instrument
@@ -47,6 +48,16 @@ FORMAT_VERSION = 1
 TARGET_NONE = 0
 TARGET_JOINTS = 1
 TARGET_XY = 2
+
+MAX_COORDINATE_MM = 1.0e5
+"""Largest base coordinate accepted (100 m): larger values are a unit or typing error."""
+MAX_SEED = 2**63 - 1
+"""Seeds are stored as signed 64-bit integers (HDF5 attributes)."""
+
+SCENARIO_KEYS = ("format", "version", "name", "kind", "seed", "instrument", "meta", "positioners")
+POSITIONER_KEYS = ("id", "x_mm", "y_mm", "orient_deg", "start_deg", "target")
+JOINT_TARGET_KEYS = ("alpha_deg", "beta_deg")
+XY_TARGET_KEYS = ("x_mm", "y_mm", "parity")
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,6 +78,8 @@ class Scenario:
         instrument_preset: the preset name when the instrument is a preset (files then
             store the name); ``None`` stores the full geometry.
         meta: free-form, JSON-serialisable.
+        validate_collisions: check that the start and goal configurations are collision-free
+            (default); the verifier turns it off to check a file against another geometry.
 
     Raises:
         ScenarioError: on any invalid positioner; the message names its id and the fix.
@@ -85,8 +98,14 @@ class Scenario:
     seed: int | None = None
     instrument_preset: str | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    validate_collisions: InitVar[bool] = True
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, validate_collisions: bool) -> None:
+        if self.seed is not None and (isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer))
+                                      or not 0 <= int(self.seed) <= MAX_SEED):
+            raise ScenarioError(f"scenario seed must be an integer from 0 to 2**63 - 1 or null, found {self.seed!r}")
+        if not isinstance(self.meta, dict):
+            raise ScenarioError(f"scenario meta must be a JSON object (a dict), found {type(self.meta).__name__}")
         for attr, dtype in (
             ("ids", np.int64),
             ("base_xy", float),
@@ -96,10 +115,13 @@ class Scenario:
             ("target_values", float),
             ("target_parity", np.int64),
         ):
-            value = np.array(getattr(self, attr), dtype=dtype)
+            try:
+                value = np.array(getattr(self, attr), dtype=dtype)
+            except (TypeError, ValueError, OverflowError) as e:
+                raise ScenarioError(f"scenario array {attr} must hold numbers ({e})") from e
             value.setflags(write=False)
             object.__setattr__(self, attr, value)
-        self._validate()
+        self._validate(validate_collisions)
 
     # ------------------------------------------------------------------ derived arrays
     @property
@@ -185,7 +207,7 @@ class Scenario:
             goal[rows[ok]] = other[ok]
             flippable[rows] = False
 
-    def _validate(self) -> None:
+    def _validate(self, validate_collisions: bool = True) -> None:
         inst = self.instrument
         n = len(self.ids)
         shapes = {
@@ -213,6 +235,16 @@ class Scenario:
                     f"positioner {self.ids[bad[0]]}: {attr} holds a non-finite value {values[bad[0]].tolist()}; "
                     "every number must be finite"
                 )
+        far = np.flatnonzero(np.abs(self.base_xy).max(axis=1) > MAX_COORDINATE_MM)
+        if len(far):
+            raise ScenarioError(
+                f"positioner {self.ids[far[0]]}: base ({self.base_xy[far[0], 0]:.6g}, {self.base_xy[far[0], 1]:.6g}) mm lies more than "
+                f"{MAX_COORDINATE_MM:.0f} mm from the centre; base coordinates are millimetres"
+            )
+        turned = np.flatnonzero(np.abs(self.orient_deg) > 360.0)
+        if len(turned):
+            raise ScenarioError(f"positioner {self.ids[turned[0]]}: orient_deg {self.orient_deg[turned[0]]:.6g} must lie in [-360, 360] deg")
+        self._validate_spacing()
         bad = np.flatnonzero(~np.isin(self.target_kind, (TARGET_NONE, TARGET_JOINTS, TARGET_XY)))
         if len(bad):
             raise ScenarioError(f"positioner {self.ids[bad[0]]}: unknown target kind {self.target_kind[bad[0]]}")
@@ -230,8 +262,27 @@ class Scenario:
                 f"alpha must lie in {lim_deg[0].tolist()} deg and beta in {lim_deg[1].tolist()} deg"
             )
         self._validate_targets()
-        self._validate_collisions(self.start, "start configuration")
-        self._validate_collisions(self.target, "goal configuration")
+        if validate_collisions:
+            self._validate_collisions(self.start, "start configuration")
+            self._validate_collisions(self.target, "goal configuration")
+
+    def _validate_spacing(self) -> None:
+        """Bases closer than the instrument allows (two positioners on one base among them)."""
+        if self.n_positioners < 2:
+            return
+        from scipy.spatial import cKDTree
+
+        limit = self.instrument.base_spacing_mm
+        close = cKDTree(self.base_xy).query_pairs(limit, output_type="ndarray")
+        if len(close):
+            gaps = np.linalg.norm(self.base_xy[close[:, 0]] - self.base_xy[close[:, 1]], axis=1)
+            k = int(np.argmin(gaps))
+            i, j = sorted(close[k].tolist())
+            raise ScenarioError(
+                f"positioners {self.ids[i]} and {self.ids[j]}: bases {gaps[k]:.4g} mm apart, closer than the "
+                f"{limit:.4g} mm instrument {self.instrument.name!r} allows ({len(close)} such pair(s)); "
+                "check the layout (duplicated rows, units) or set [geometry] min_base_distance_mm in the instrument file"
+            )
 
     def _validate_targets(self) -> None:
         inst = self.instrument
@@ -342,11 +393,15 @@ def _replace(scenario: Scenario, **changes: Any) -> Scenario:
 def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
     """Build a :class:`Scenario` from the JSON layout.
 
+    Every key is checked: an unknown key (a misspelling such as ``"targett"``) is an error
+    naming it and the closest valid key, never ignored.
+
     Raises:
-        ScenarioError: a key is missing, a value has the wrong type, or validation fails.
+        ScenarioError: a key is missing or unknown, a value has the wrong type, or validation fails.
     """
     if not isinstance(data, dict):
         raise ScenarioError(f"{origin}: the top level must be a JSON object")
+    check_keys(data, SCENARIO_KEYS, origin, ScenarioError)
     if data.get("format") != FORMAT_NAME:
         raise ScenarioError(f"{origin}: 'format' must be {FORMAT_NAME!r}, found {data.get('format')!r}")
     if data.get("version") != FORMAT_VERSION:
@@ -355,7 +410,8 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
     try:
         if isinstance(raw_instrument, str):
             instrument = load_instrument(raw_instrument)
-            preset: str | None = raw_instrument
+            # A preset is stored by name; an instrument file's table is embedded (the scenario stands alone).
+            preset: str | None = raw_instrument if _is_preset(raw_instrument) and not Path(raw_instrument).is_file() else None
         elif isinstance(raw_instrument, dict):
             instrument = instrument_from_dict(raw_instrument, origin=f"{origin}: instrument")
             preset = None
@@ -375,7 +431,10 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
     values = np.zeros((n, 2))
     parity = np.zeros(n, dtype=np.int64)
     for k, row in enumerate(rows):
-        label = f"positioner {row.get('id', f'#{k}') if isinstance(row, dict) else f'#{k}'}"
+        if not isinstance(row, dict):
+            raise ScenarioError(f"{origin}: positioner #{k}: each entry of 'positioners' must be an object")
+        label = f"positioner {row.get('id', f'#{k}')}"
+        check_keys(row, POSITIONER_KEYS, f"{origin}: {label}", ScenarioError)
         try:
             ids[k] = _as_int(row["id"])
             base[k] = (_as_float(row["x_mm"]), _as_float(row["y_mm"]))
@@ -389,35 +448,57 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
                 kind[k] = TARGET_NONE
             elif not isinstance(target, dict):
                 raise ValueError("target must be an object or null")
-            elif "alpha_deg" in target or "beta_deg" in target:
+            elif any(key in target for key in JOINT_TARGET_KEYS):
+                check_keys(target, JOINT_TARGET_KEYS, f"{origin}: {label}: joint-angle target", ScenarioError)
                 kind[k] = TARGET_JOINTS
                 values[k] = (_as_float(target["alpha_deg"]), _as_float(target["beta_deg"]))
             elif "x_mm" in target or "y_mm" in target:
+                check_keys(target, XY_TARGET_KEYS, f"{origin}: {label}: fiber x/y target", ScenarioError)
                 kind[k] = TARGET_XY
                 values[k] = (_as_float(target["x_mm"]), _as_float(target["y_mm"]))
                 parity[k] = _as_int(target.get("parity", 0))
             else:
-                raise ValueError("target needs alpha_deg/beta_deg or x_mm/y_mm")
+                check_keys(target, (*JOINT_TARGET_KEYS, *XY_TARGET_KEYS), f"{origin}: {label}: target", ScenarioError)
+                raise ValueError("target needs alpha_deg/beta_deg or x_mm/y_mm (or null for no target)")
         except KeyError as e:
             raise ScenarioError(f"{origin}: {label}: missing key {e.args[0]!r}") from e
-        except (TypeError, ValueError, AttributeError) as e:
+        except (TypeError, ValueError, AttributeError, OverflowError) as e:
+            if isinstance(e, ScenarioError):
+                raise
             raise ScenarioError(f"{origin}: {label}: {e}") from e
     seed = data.get("seed")
-    return Scenario(
-        instrument=instrument,
-        ids=ids,
-        base_xy=base,
-        orient_deg=orient,
-        start_deg=start,
-        target_kind=kind,
-        target_values=values,
-        target_parity=parity,
-        name=str(data.get("name", "")),
-        kind=str(data.get("kind", "custom")),
-        seed=None if seed is None else int(seed),
-        instrument_preset=preset,
-        meta=dict(data.get("meta") or {}),
-    )
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED):
+        raise ScenarioError(f"{origin}: 'seed' must be an integer from 0 to 2**63 - 1 or null, found {seed!r}")
+    meta = data.get("meta")
+    if meta is not None and not isinstance(meta, dict):
+        raise ScenarioError(f"{origin}: 'meta' must be an object (or absent), found {type(meta).__name__} {meta!r}")
+    for key in ("name", "kind"):
+        if key in data and not isinstance(data[key], str):
+            raise ScenarioError(f"{origin}: {key!r} must be a string, found {data[key]!r}")
+    try:
+        return Scenario(
+            instrument=instrument,
+            ids=ids,
+            base_xy=base,
+            orient_deg=orient,
+            start_deg=start,
+            target_kind=kind,
+            target_values=values,
+            target_parity=parity,
+            name=str(data.get("name", "")),
+            kind=str(data.get("kind", "custom")),
+            seed=seed,
+            instrument_preset=preset,
+            meta=dict(meta or {}),
+        )
+    except ScenarioError as e:
+        raise ScenarioError(f"{origin}: {e}") from e
+
+
+def _is_preset(name: str) -> bool:
+    from fiberplan.instrument import preset_names
+
+    return name in preset_names()
 
 
 def _as_float(value: Any) -> float:
@@ -429,6 +510,8 @@ def _as_float(value: Any) -> float:
 def _as_int(value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int):
         raise ValueError(f"expected an integer, found {value!r}")
+    if not -MAX_SEED - 1 <= value <= MAX_SEED:
+        raise ValueError(f"integer {value} does not fit in 64 bits")
     return int(value)
 
 

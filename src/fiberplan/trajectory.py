@@ -18,7 +18,7 @@ HDF5 layout (``format = "fiberplan-trajectory"``, version 1), readable with plai
     /trajectory/time_s       (T,)      float64
     /trajectory/joints_rad   (T, N, 2) float64   (time, positioner, joint)
     /outcome/status          (N,)      ASCII: reached | deadlocked | failed
-    /planner                 attrs: name, settings_json, stats_json, plan_wall_s
+    /planner                 attrs: name, settings_json, stats_json, plan_wall_s, warnings_json
 
 Files are written under a temporary name and renamed into place when complete.
 """
@@ -35,7 +35,7 @@ import h5py
 import numpy as np
 
 from fiberplan._atomic import atomic_path
-from fiberplan.errors import FiberplanError, TrajectoryFileError
+from fiberplan.errors import FiberplanError, PlannerError, TrajectoryError, TrajectoryFileError
 from fiberplan.scenario import Scenario, scenario_from_dict
 
 FORMAT_NAME = "fiberplan-trajectory"
@@ -56,14 +56,28 @@ class Trajectory:
     joints: np.ndarray
 
     def __post_init__(self) -> None:
-        times = np.asarray(self.times, dtype=float)
-        joints = np.asarray(self.joints, dtype=float)
+        try:
+            times = np.asarray(self.times, dtype=float)
+            joints = np.asarray(self.joints, dtype=float)
+        except (TypeError, ValueError) as e:
+            raise TrajectoryError(f"trajectory times and joints must be numeric arrays ({e})") from e
         if times.ndim != 1 or joints.ndim != 3 or joints.shape[0] != times.shape[0] or joints.shape[2] != 2:
-            raise ValueError(f"trajectory shapes do not match: times {times.shape}, joints {joints.shape} (expected (T,) and (T, N, 2))")
+            raise TrajectoryError(
+                f"trajectory shapes do not match: times {times.shape}, joints {joints.shape} (expected (T,) and (T, N, 2))"
+            )
+        if len(times) == 0:
+            raise TrajectoryError("a trajectory needs at least one sample")
+        if not np.all(np.isfinite(times)):
+            raise TrajectoryError("trajectory times must be finite")
         if len(times) > 1 and not np.all(np.diff(times) > 0):
-            raise ValueError("trajectory times must be strictly increasing")
+            raise TrajectoryError("trajectory times must be strictly increasing")
         object.__setattr__(self, "times", times)
         object.__setattr__(self, "joints", joints)
+
+    def non_finite(self) -> tuple[np.ndarray, np.ndarray]:
+        """Sample and positioner indices ``(k, i)`` of every sample with a non-finite joint angle."""
+        k, i = np.nonzero(~np.isfinite(self.joints).all(axis=-1))
+        return k, i
 
     @property
     def duration_s(self) -> float:
@@ -93,6 +107,12 @@ class PlanResult:
         settings: the settings used (JSON-serialisable).
         stats: planner statistics (JSON-serialisable): solver calls, failures, timings.
         plan_wall_s: wall-clock time of the planning call.
+        warnings: what the planner gave up on or could not do (shown by the command line).
+
+    Raises:
+        TrajectoryError: shapes or outcomes do not match the scenario.
+        PlannerError: the trajectory holds a non-finite sample: no planner may return one
+            (the message names the planner, positioners and times).
     """
 
     scenario: Scenario
@@ -102,18 +122,28 @@ class PlanResult:
     settings: dict[str, Any] = field(default_factory=dict)
     stats: dict[str, Any] = field(default_factory=dict)
     plan_wall_s: float = 0.0
+    warnings: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         outcome = np.asarray(self.outcome, dtype=str)
         n = self.scenario.n_positioners
         if outcome.shape != (n,):
-            raise ValueError(f"outcome has shape {outcome.shape}, expected ({n},)")
+            raise TrajectoryError(f"outcome has shape {outcome.shape}, expected ({n},)")
         unknown = set(outcome.tolist()) - set(OUTCOMES)
         if unknown:
-            raise ValueError(f"unknown outcomes {sorted(unknown)}; expected {OUTCOMES}")
+            raise TrajectoryError(f"unknown outcomes {sorted(unknown)}; expected {OUTCOMES}")
         if self.trajectory.joints.shape[1] != n:
-            raise ValueError(f"trajectory has {self.trajectory.joints.shape[1]} positioners, scenario has {n}")
+            raise TrajectoryError(f"trajectory has {self.trajectory.joints.shape[1]} positioners, scenario has {n}")
+        k, i = self.trajectory.non_finite()
+        if len(k):
+            ids = np.unique(self.scenario.ids[i])
+            raise PlannerError(
+                f"internal error: planner {self.planner!r} produced non-finite joint angles for {len(ids)} positioner(s) "
+                f"(first: positioner {self.scenario.ids[i[0]]} at t = {self.trajectory.times[k[0]]:.4g} s; ids {ids[:10].tolist()}); "
+                "this is a bug in the planner, please report it"
+            )
         object.__setattr__(self, "outcome", outcome)
+        object.__setattr__(self, "warnings", tuple(str(w) for w in self.warnings))
 
 
 def _fiberplan_version() -> str:
@@ -126,7 +156,11 @@ def _fiberplan_version() -> str:
 
 
 def save_result(result: PlanResult, path: str | Path) -> Path:
-    """Write a plan result to an HDF5 file, atomically. Returns the path."""
+    """Write a plan result to an HDF5 file, atomically. Returns the path.
+
+    Raises:
+        OutputError: the path must not be written (not a regular file) or writing failed.
+    """
     path = Path(path)
     scenario = result.scenario
     with atomic_path(path) as tmp:
@@ -162,6 +196,7 @@ def save_result(result: PlanResult, path: str | Path) -> Path:
             planner.attrs["settings_json"] = json.dumps(result.settings, default=_json_default)
             planner.attrs["stats_json"] = json.dumps(result.stats, default=_json_default)
             planner.attrs["plan_wall_s"] = float(result.plan_wall_s)
+            planner.attrs["warnings_json"] = json.dumps(list(result.warnings))
     return path
 
 
@@ -173,15 +208,58 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"not JSON-serialisable: {type(value).__name__}")
 
 
-def load_result(path: str | Path) -> PlanResult:
-    """Read a plan result written by :func:`save_result`.
+@dataclass(frozen=True, eq=False)
+class RunFile:
+    """A trajectory file as stored, non-finite samples included (what ``fiberplan verify`` checks).
+
+    Attributes:
+        path: the file.
+        scenario: the scenario embedded as ``scenario_json``.
+        trajectory: time grid and joint angles (which may hold non-finite samples).
+        outcome: the planner's verdicts per positioner.
+        planner, settings, stats, plan_wall_s, warnings: the ``/planner`` group.
+        positioners: the ``/positioners/*`` datasets, by name.
+    """
+
+    path: Path
+    scenario: Scenario
+    trajectory: Trajectory
+    outcome: np.ndarray
+    planner: str
+    settings: dict[str, Any]
+    stats: dict[str, Any]
+    plan_wall_s: float
+    warnings: tuple[str, ...]
+    positioners: dict[str, np.ndarray]
+
+    def to_result(self) -> PlanResult:
+        """The :class:`PlanResult` of the file.
+
+        Raises:
+            TrajectoryFileError: the file holds non-finite samples (``fiberplan verify`` names them).
+        """
+        k, i = self.trajectory.non_finite()
+        if len(k):
+            raise TrajectoryFileError(
+                f"{str(self.path)!r} holds non-finite joint angles (positioner {self.scenario.ids[i[0]]} at "
+                f"t = {self.trajectory.times[k[0]]:.4g} s, {len(k)} sample(s) in all); run `fiberplan verify` on it for the list"
+            )
+        return PlanResult(
+            scenario=self.scenario, trajectory=self.trajectory, outcome=self.outcome, planner=self.planner,
+            settings=self.settings, stats=self.stats, plan_wall_s=self.plan_wall_s, warnings=self.warnings,
+        )
+
+
+def read_run(path: str | Path) -> RunFile:
+    """Read a trajectory file as stored, without judging its samples (see :class:`RunFile`).
 
     Raises:
-        TrajectoryFileError: missing, truncated or foreign file, or inconsistent content.
+        TrajectoryFileError: missing, truncated or foreign file, or unreadable content.
     """
     path = Path(path)
     if not path.is_file():
-        raise TrajectoryFileError(f"trajectory file {str(path)!r} does not exist")
+        what = "does not exist" if not path.exists() else "is not a regular file"
+        raise TrajectoryFileError(f"trajectory file {str(path)!r} {what}")
     try:
         with h5py.File(path, "r") as f:
             if f.attrs.get("format") != FORMAT_NAME:
@@ -195,22 +273,46 @@ def load_result(path: str | Path) -> PlanResult:
             times = f["trajectory/time_s"][...]
             joints = f["trajectory/joints_rad"][...]
             outcome = np.array([s.decode("ascii") for s in f["outcome/status"][...]])
+            if outcome.shape != (scenario.n_positioners,):
+                raise TrajectoryFileError(f"{str(path)!r}: /outcome/status has {outcome.shape} entries for {scenario.n_positioners} positioners")
+            unknown = sorted(set(outcome.tolist()) - set(OUTCOMES))
+            if unknown:
+                raise TrajectoryFileError(f"{str(path)!r}: /outcome/status holds unknown outcomes {unknown}; expected {OUTCOMES}")
             planner = f["planner"]
-            result = PlanResult(
+            positioners = {name: f["positioners"][name][...] for name in f["positioners"]} if "positioners" in f else {}
+            trajectory = Trajectory(times, joints)
+            if joints.shape[1] != scenario.n_positioners:
+                raise TrajectoryFileError(
+                    f"{str(path)!r}: the trajectory has {joints.shape[1]} positioners, the scenario {scenario.n_positioners}"
+                )
+            run = RunFile(
+                path=path,
                 scenario=scenario,
-                trajectory=Trajectory(times, joints),
+                trajectory=trajectory,
                 outcome=outcome,
                 planner=str(planner.attrs["name"]),
                 settings=json.loads(planner.attrs["settings_json"]),
                 stats=json.loads(planner.attrs["stats_json"]),
                 plan_wall_s=float(planner.attrs["plan_wall_s"]),
+                warnings=tuple(json.loads(planner.attrs.get("warnings_json", "[]"))),
+                positioners=positioners,
             )
     except FiberplanError as e:
         if isinstance(e, TrajectoryFileError):
             raise
         raise TrajectoryFileError(f"{str(path)!r}: {e}") from e
-    except (OSError, KeyError, ValueError, json.JSONDecodeError) as e:
+    except (OSError, KeyError, ValueError, TypeError, json.JSONDecodeError) as e:
         raise TrajectoryFileError(
             f"cannot read trajectory file {str(path)!r} ({type(e).__name__}: {e}); it may be truncated or not a fiberplan file"
         ) from e
-    return result
+    return run
+
+
+def load_result(path: str | Path) -> PlanResult:
+    """Read a plan result written by :func:`save_result`.
+
+    Raises:
+        TrajectoryFileError: missing, truncated or foreign file, inconsistent content, or
+            non-finite samples (read those with :func:`read_run`, check them with ``verify``).
+    """
+    return read_run(path).to_result()

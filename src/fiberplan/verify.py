@@ -14,6 +14,12 @@ Each interval is bisected until, on every piece, the pair's points move less tha
 ``fraction`` of the clearance measured at both ends of the piece; a piece with positive
 clearances at both ends then cannot hide a contact. A collision found between samples is
 reported at the instant it was probed.
+
+Non-finite joint angles (NaN, inf) are violations of their own: every such sample is
+reported (as runs of consecutive samples per positioner), and the geometric checks leave the
+unknown positions out. :func:`check_run_file` checks a trajectory file against itself (its
+``/positioners/*`` datasets against the embedded scenario, an embedded preset instrument
+against the preset shipped with fiberplan).
 """
 
 from __future__ import annotations
@@ -23,11 +29,12 @@ from typing import Any
 
 import numpy as np
 
+from fiberplan.errors import TrajectoryError
 from fiberplan.geometry import capsule_segments, clearance_between
-from fiberplan.instrument import Instrument
+from fiberplan.instrument import Instrument, load_instrument, preset_names
 from fiberplan.layout import neighbour_pairs
 from fiberplan.scenario import Scenario
-from fiberplan.trajectory import Trajectory
+from fiberplan.trajectory import RunFile, Trajectory
 
 _ANGLE_TOL = 1e-9
 _SPEED_REL_TOL = 1e-6
@@ -56,7 +63,11 @@ class CollisionEvent:
 
 @dataclass(frozen=True)
 class LimitViolation:
-    """A joint beyond a hard stop or faster than its motor."""
+    """A joint beyond a hard stop or faster than its motor: its worst excess, and when it began.
+
+    ``t_s`` and ``value`` are those of the worst sample (the largest excess), ``t_first_s`` the
+    first offending sample of that positioner and joint.
+    """
 
     positioner_id: int
     joint: str
@@ -64,14 +75,26 @@ class LimitViolation:
     value: float
     limit: float
     kind: str  # "hard_stop" or "speed"
+    t_first_s: float = float("nan")
+
+
+@dataclass(frozen=True)
+class NonFiniteRun:
+    """Consecutive samples of one positioner whose joint angles are not finite (NaN or inf)."""
+
+    positioner_id: int
+    t_first_s: float
+    t_last_s: float
+    n_samples: int
 
 
 @dataclass
 class VerificationReport:
     """Everything the verifier found.
 
-    ``ok`` is true when the trajectory starts at the scenario's start, respects every hard
-    stop and speed limit, and no pair collides at any instant.
+    ``ok`` is true when every sample is finite, the trajectory starts at the scenario's
+    start, respects every hard stop and speed limit, no pair collides at any instant, and (for
+    a file) the file agrees with itself.
     """
 
     n_positioners: int
@@ -80,13 +103,21 @@ class VerificationReport:
     collisions: list[CollisionEvent] = field(default_factory=list)
     limit_violations: list[LimitViolation] = field(default_factory=list)
     start_mismatch_ids: list[int] = field(default_factory=list)
+    non_finite: list[NonFiniteRun] = field(default_factory=list)
+    file_mismatches: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
     min_clearance_mm: float = float("inf")
     probes: int = 0
 
     @property
     def ok(self) -> bool:
-        """No collision, no limit violation, and the trajectory starts at the scenario's start."""
-        return not (self.collisions or self.limit_violations or self.start_mismatch_ids)
+        """No non-finite sample, collision, limit violation or file mismatch; starts at the start."""
+        return not (self.collisions or self.limit_violations or self.start_mismatch_ids or self.non_finite or self.file_mismatches)
+
+    @property
+    def n_non_finite_samples(self) -> int:
+        """Number of (sample, positioner) entries with a non-finite joint angle."""
+        return sum(r.n_samples for r in self.non_finite)
 
     @property
     def n_collisions(self) -> int:
@@ -104,13 +135,19 @@ class VerificationReport:
             "collision_events": [asdict(c) | {"overlap_mm": c.overlap_mm} for c in self.collisions],
             "limit_violations": [asdict(v) for v in self.limit_violations],
             "start_mismatch_ids": self.start_mismatch_ids,
+            "non_finite_samples": self.n_non_finite_samples,
+            "non_finite": [asdict(r) for r in self.non_finite],
+            "file_mismatches": self.file_mismatches,
+            "warnings": self.warnings,
             "min_clearance_mm": self.min_clearance_mm,
             "probes": self.probes,
         }
 
 
-def verify(scenario: Scenario, trajectory: Trajectory, *, fraction: float = 0.5, time_chunk: int = 64) -> VerificationReport:
-    """Check a trajectory against the scenario's instrument.
+def verify(
+    scenario: Scenario, trajectory: Trajectory, *, fraction: float = 0.5, time_chunk: int = 64, instrument: Instrument | None = None,
+) -> VerificationReport:
+    """Check a trajectory against the scenario's instrument (or the one given).
 
     Args:
         scenario: positioners, bases and instrument.
@@ -118,25 +155,35 @@ def verify(scenario: Scenario, trajectory: Trajectory, *, fraction: float = 0.5,
         fraction: bisect each inter-sample interval until no point moves more than this
             fraction of the clearance between two checks (0 < fraction < 1).
         time_chunk: samples processed at once (memory bound for large N).
+        instrument: check against this geometry and these limits instead of the scenario's.
 
     Returns:
         A :class:`VerificationReport`.
+
+    Raises:
+        TrajectoryError: ``fraction`` outside (0, 1), or the trajectory and the scenario do
+            not have the same positioners.
     """
     if not 0.0 < fraction < 1.0:
-        raise ValueError(f"fraction must lie in (0, 1), found {fraction}")
-    inst = scenario.instrument
-    joints = trajectory.joints
+        raise TrajectoryError(f"fraction must lie in (0, 1), found {fraction}")
+    if int(time_chunk) != time_chunk or time_chunk < 1:
+        raise TrajectoryError(f"time_chunk must be an integer >= 1, found {time_chunk}")
+    inst = scenario.instrument if instrument is None else instrument
     times = trajectory.times
-    n_t, n = joints.shape[0], joints.shape[1]
+    n_t, n = trajectory.joints.shape[0], trajectory.joints.shape[1]
     if n != scenario.n_positioners:
-        raise ValueError(f"trajectory has {n} positioners, scenario has {scenario.n_positioners}")
+        raise TrajectoryError(f"trajectory has {n} positioners, scenario has {scenario.n_positioners}")
     pairs = neighbour_pairs(inst, scenario.base_xy)
     report = VerificationReport(n_positioners=n, n_samples=n_t, n_pairs=len(pairs))
     ids = scenario.ids
+    _check_finite(scenario, trajectory, report)
+    # Unknown positions (non-finite samples) are left out of the geometric checks: NaN
+    # compares false everywhere below, so they can neither hide nor fake a collision.
+    joints = trajectory.joints if not report.non_finite else np.where(np.isfinite(trajectory.joints), trajectory.joints, np.nan)
 
-    mismatch = np.flatnonzero(np.any(np.abs(joints[0] - scenario.start) > 1e-7, axis=1))
+    mismatch = np.flatnonzero(~np.all(np.abs(joints[0] - scenario.start) <= 1e-7, axis=1))
     report.start_mismatch_ids = [int(ids[k]) for k in mismatch]
-    _check_limits(scenario, trajectory, report)
+    _check_limits(inst, scenario.ids, trajectory, report)
     if len(pairs) == 0 or n_t == 0:
         return report
 
@@ -181,7 +228,8 @@ def verify(scenario: Scenario, trajectory: Trajectory, *, fraction: float = 0.5,
         hit = exact.min(axis=1) < 0.0
         if np.any(hit):
             record(near_p[hit], times[k0 + near_t[hit]], exact[hit])
-    report.min_clearance_mm = float(sample_clear.min())
+    finite_clear = sample_clear[np.isfinite(sample_clear)]
+    report.min_clearance_mm = float(finite_clear.min()) if finite_clear.size else float("inf")
 
     # Between samples: bisect the intervals whose motion bound is not small against the clearance.
     if n_t > 1:
@@ -211,7 +259,7 @@ def verify(scenario: Scenario, trajectory: Trajectory, *, fraction: float = 0.5,
             cmid = clear_k.min(axis=1)
             report.probes += len(cmid)
             t_mid = times[k_idx] + mid * (times[k_idx + 1] - times[k_idx])
-            report.min_clearance_mm = min(report.min_clearance_mm, float(cmid.min()))
+            report.min_clearance_mm = min(report.min_clearance_mm, float(np.nanmin(cmid, initial=np.inf)))
             hit = cmid < 0.0
             if np.any(hit):
                 record(p_idx[hit], t_mid[hit], clear_k[hit])
@@ -265,27 +313,118 @@ def _enclosing_disc_gap(
     return gap - radius[:, pairs[:, 0]] - radius[:, pairs[:, 1]]
 
 
-def _check_limits(scenario: Scenario, trajectory: Trajectory, report: VerificationReport) -> None:
-    """Append hard-stop and speed violations (first offending sample of each positioner and joint)."""
-    inst = scenario.instrument
-    joints, times, ids = trajectory.joints, trajectory.times, scenario.ids
+def _check_finite(scenario: Scenario, trajectory: Trajectory, report: VerificationReport) -> None:
+    """Append every non-finite sample, as runs of consecutive samples per positioner."""
+    bad = ~np.isfinite(trajectory.joints).all(axis=-1)  # (T, N)
+    if not bad.any():
+        return
+    times, ids = trajectory.times, scenario.ids
+    for i in np.flatnonzero(bad.any(axis=0)):
+        col = np.concatenate([[False], bad[:, i], [False]]).astype(np.int8)
+        edges = np.diff(col)
+        starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)  # [start, stop)
+        for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
+            report.non_finite.append(NonFiniteRun(int(ids[i]), float(times[a]), float(times[b - 1]), b - a))
+
+
+def _check_limits(inst: Instrument, ids: np.ndarray, trajectory: Trajectory, report: VerificationReport) -> None:
+    """Append hard-stop and speed violations: one per positioner, joint and kind, at its worst sample."""
+    joints, times = trajectory.joints, trajectory.times
     lim = inst.limits_rad
     for axis, joint_name in enumerate(("alpha", "beta")):
         values = joints[:, :, axis]
-        low = values < lim[axis, 0] - _ANGLE_TOL
-        high = values > lim[axis, 1] + _ANGLE_TOL
-        for mask, limit in ((low, lim[axis, 0]), (high, lim[axis, 1])):
+        for sign, limit in ((-1.0, lim[axis, 0]), (1.0, lim[axis, 1])):
+            excess = sign * (values - limit)
+            mask = excess > _ANGLE_TOL
             for i in np.flatnonzero(mask.any(axis=0)):
-                k = int(np.argmax(mask[:, i]))
+                first = int(np.argmax(mask[:, i]))
+                worst = int(np.nanargmax(np.where(mask[:, i], excess[:, i], -np.inf)))
                 report.limit_violations.append(
-                    LimitViolation(int(ids[i]), joint_name, float(times[k]), float(values[k, i]), float(limit), "hard_stop")
+                    LimitViolation(int(ids[i]), joint_name, float(times[worst]), float(values[worst, i]), float(limit), "hard_stop",
+                                   float(times[first]))
                 )
         if len(times) > 1:
             speed = np.abs(np.diff(values, axis=0)) / np.diff(times)[:, None]
             max_speed = inst.speeds_rad_s[axis]
             fast = speed > max_speed * (1 + _SPEED_REL_TOL) + 1e-12
             for i in np.flatnonzero(fast.any(axis=0)):
-                k = int(np.argmax(fast[:, i]))
+                first = int(np.argmax(fast[:, i]))
+                worst = int(np.nanargmax(np.where(fast[:, i], speed[:, i], -np.inf)))
                 report.limit_violations.append(
-                    LimitViolation(int(ids[i]), joint_name, float(times[k]), float(speed[k, i]), float(max_speed), "speed")
+                    LimitViolation(int(ids[i]), joint_name, float(times[worst]), float(speed[worst, i]), float(max_speed), "speed",
+                                   float(times[first]))
                 )
+
+
+_DATASET_CHECKS = (
+    ("id", "ids"),
+    ("base_xy_mm", "base_xy"),
+    ("orient_rad", "orient"),
+    ("start_rad", "start"),
+    ("target_rad", "target"),
+    ("target_xy_mm", "target_xy"),
+    ("has_target", "has_target"),
+)
+
+
+def check_run_file(run: RunFile) -> tuple[list[str], list[str]]:
+    """Check a trajectory file against itself: ``(mismatches, warnings)``.
+
+    Mismatches (the file fails verification): a ``/positioners/*`` dataset missing or
+    disagreeing with the embedded scenario (ids, bases, orientations, starts, targets).
+    Warnings: the embedded instrument table carries a preset's name but differs from the
+    preset shipped with fiberplan (each differing field named; ``fiberplan verify --instrument``
+    checks against the preset instead).
+    """
+    mismatches: list[str] = []
+    sc = run.scenario
+    for dataset, attr in _DATASET_CHECKS:
+        stored = run.positioners.get(dataset)
+        expected = np.asarray(getattr(sc, attr))
+        if stored is None:
+            mismatches.append(f"/positioners/{dataset} is missing")
+            continue
+        if stored.shape != expected.shape:
+            mismatches.append(f"/positioners/{dataset} has shape {stored.shape}, the embedded scenario {expected.shape}")
+            continue
+        if expected.dtype.kind in "biu":
+            differ = np.flatnonzero((stored != expected).reshape(len(expected), -1).any(axis=1))
+        else:
+            close = np.isclose(stored.astype(float), expected.astype(float), rtol=0.0, atol=1e-9)
+            differ = np.flatnonzero(~close.reshape(len(expected), -1).all(axis=1))
+        if len(differ):
+            k = int(differ[0])
+            mismatches.append(
+                f"/positioners/{dataset} disagrees with the embedded scenario for {len(differ)} positioner(s), first "
+                f"positioner {sc.ids[k]}: dataset {np.round(stored[k], 9).tolist()}, scenario {np.round(expected[k], 9).tolist()}"
+            )
+    warnings: list[str] = []
+    if sc.instrument_preset is None and sc.instrument.name in preset_names():
+        differences = instrument_differences(sc.instrument, load_instrument(sc.instrument.name))
+        if differences:
+            warnings.append(
+                f"the file embeds an instrument named {sc.instrument.name!r} that differs from the shipped preset: "
+                f"{'; '.join(differences)}; run `fiberplan verify FILE --instrument {sc.instrument.name}` to check against the preset"
+            )
+    return mismatches, warnings
+
+
+def instrument_differences(found: Instrument, reference: Instrument) -> list[str]:
+    """The fields of two instruments that differ, each ``"field: found X, reference Y"``."""
+    out: list[str] = []
+    for name in (
+        "pitch_mm", "alpha_arm_mm", "beta_arm_mm", "alpha_speed_rad_s", "beta_speed_rad_s", "alpha_limits_rad",
+        "beta_limits_rad", "datum_rad", "tolerance_mm",
+    ):
+        a, b = np.asarray(getattr(found, name), dtype=float), np.asarray(getattr(reference, name), dtype=float)
+        if a.shape != b.shape or not np.allclose(a, b, rtol=1e-12, atol=1e-12):
+            out.append(f"{name}: file {np.round(a, 9).tolist()}, preset {np.round(b, 9).tolist()}")
+    if len(found.capsules) != len(reference.capsules):
+        out.append(f"capsules: file has {len(found.capsules)}, preset {len(reference.capsules)}")
+    else:
+        for k, (ca, cb) in enumerate(zip(found.capsules, reference.capsules, strict=True)):
+            for name in ("name", "arm", "start_mm", "end_mm", "radius_mm", "layer"):
+                va, vb = getattr(ca, name), getattr(cb, name)
+                if va != vb:
+                    out.append(f"capsules[{k}].{name}: file {va!r}, preset {vb!r}")
+    return out

@@ -8,14 +8,12 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import numbers
 import time
 from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
-import numpy as np
-
-from fiberplan.errors import PlannerError
+from fiberplan._keys import unknown_key_message
+from fiberplan.errors import PlannerError, SettingsError
 from fiberplan.instrument import Instrument
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult
@@ -42,17 +40,18 @@ def instrument_defaults(instrument: Instrument, table: str, defaults: Any) -> An
     """``defaults`` (a settings dataclass) with the instrument file's ``[planner_defaults.<table>]`` applied.
 
     Raises:
-        PlannerError: the table names a setting the dataclass does not have.
+        SettingsError: the table names a setting the dataclass does not have, or a value is
+            out of its range.
     """
     overrides = dict(instrument.planner_defaults.get(table, {}))
     known = {f.name for f in dataclasses.fields(defaults)}
-    unknown = sorted(set(overrides) - known)
-    if unknown:
-        raise PlannerError(
-            f"instrument {instrument.name!r}: [planner_defaults.{table}] has no setting {unknown[0]!r}; "
-            f"known settings are {', '.join(sorted(known))}"
-        )
-    return dataclasses.replace(defaults, **overrides)
+    for key in overrides:
+        if key not in known:
+            raise SettingsError(unknown_key_message(key, known, f"instrument {instrument.name!r}: [planner_defaults.{table}]", "setting"))
+    try:
+        return dataclasses.replace(defaults, **overrides)
+    except SettingsError as e:
+        raise SettingsError(f"instrument {instrument.name!r}: [planner_defaults.{table}]: {e}") from e
 
 
 def planner_names() -> list[str]:
@@ -77,31 +76,32 @@ def settings_class(name: str) -> type:
     return _lookup(name)[1]
 
 
-def make_settings(name: str, scenario: Scenario, overrides: Mapping[str, Any] | None = None) -> Any:
+def make_settings(name: str, scenario: Scenario | Instrument, overrides: Mapping[str, Any] | None = None) -> Any:
     """Settings dataclass of planner ``name`` with the instrument's defaults and ``overrides``.
 
+    Args:
+        name: a registered planner.
+        scenario: the scenario to plan, or just its instrument (the defaults depend on it).
+        overrides: setting values, e.g. from ``--set KEY=VALUE``.
+
     Raises:
-        PlannerError: an override names no setting of this planner, or has a bad value.
+        SettingsError: an override names no setting of this planner (the closest is named),
+            has the wrong type, or lies outside its documented range.
     """
     _, settings_cls = _lookup(name)
-    defaults = settings_cls.for_instrument(scenario.instrument) if hasattr(settings_cls, "for_instrument") else settings_cls()
+    instrument = scenario.instrument if isinstance(scenario, Scenario) else scenario
+    defaults = settings_cls.for_instrument(instrument) if hasattr(settings_cls, "for_instrument") else settings_cls()
     overrides = dict(overrides or {})
     known = {f.name: f for f in dataclasses.fields(settings_cls)}
-    unknown = sorted(set(overrides) - set(known))
-    if unknown:
-        raise PlannerError(f"planner {name!r} has no setting {unknown[0]!r}; its settings are {', '.join(sorted(known))}")
-    for key, value in overrides.items():
-        default = getattr(defaults, key)
-        is_bool = isinstance(value, (bool, np.bool_))
-        is_number = isinstance(value, numbers.Real) and not is_bool  # numpy scalars included
-        if isinstance(default, bool) and not is_bool:
-            raise PlannerError(f"planner {name!r}: setting {key!r} must be true or false, found {value!r}")
-        if isinstance(default, (int, float)) and not isinstance(default, bool) and not is_number:
-            raise PlannerError(f"planner {name!r}: setting {key!r} must be a number, found {value!r}")
+    for key in overrides:
+        if key not in known:
+            raise SettingsError(unknown_key_message(key, known, f"planner {name!r}", "setting"))
     try:
         return dataclasses.replace(defaults, **overrides)
+    except SettingsError:
+        raise
     except (TypeError, ValueError) as e:
-        raise PlannerError(f"planner {name!r}: bad setting ({e})") from e
+        raise SettingsError(f"planner {name!r}: bad setting ({e})") from e
 
 
 def plan(

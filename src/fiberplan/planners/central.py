@@ -43,12 +43,13 @@ from typing import Any, Literal
 
 import numpy as np
 
-from fiberplan.errors import PlannerError
+from fiberplan.errors import PlannerError, SettingsError
 from fiberplan.geometry import pair_clearance, segment_distance
 from fiberplan.instrument import Instrument
 from fiberplan.kinematics import move_times
 from fiberplan.planners import ProgressCallback
 from fiberplan.scenario import Scenario
+from fiberplan.settings import check_settings, setting
 from fiberplan.trajectory import PlanResult, Trajectory
 
 CentralMode = Literal["time", "energy"]
@@ -65,50 +66,39 @@ _BUILTIN_STARTS = (_STRAIGHT, _SEQUENTIAL)
 class CentralSettings:
     """Settings of the ``central`` planner (defaults per instrument: :meth:`for_instrument`).
 
-    Attributes:
-        mode: ``"time"`` minimises the makespan plus ``energy_weight`` times the relative
-            energy; ``"energy"`` minimises the energy at a fixed makespan.
-        steps: ``T``, number of intervals of the discretised motion.
-        energy_weight: ``w_E``, weight of ``E / E_ref`` against ``t_f / t_LB`` in time mode
-            (``E_ref``: energy of every joint moving at constant speed over ``t_LB``).
-        makespan_s: energy mode: the fixed final time (s); ``None`` takes
-            ``makespan_factor`` times the lower bound.
-        makespan_factor: energy mode default final time, in lower bounds.
-        warm_start: starts to solve from: ``"straight"`` (constant-speed joint
-            interpolation over ``straight_stretch`` lower bounds), ``"sequential"`` (one
-            positioner after another, longest move first) or a registered planner's name
-            (its trajectory, resampled). The best converged candidate is kept.
-        straight_stretch: duration of the straight warm start, in lower bounds.
-        margin_mm: extra clearance ``m`` demanded by the collision constraints (mm).
-        activate_mm: a capsule combination gets a separating line on an interval when its
-            clearance along the guess (minus the motion bound of the interval) is below this.
-        activation_window: the initial activation also covers this many intervals before
-            and after each close approach (the solution shifts in time).
-        lazy_rounds: re-solves allowed after adding the lines a solution made necessary.
-        max_iter: IPOPT iteration limit per solve.
-        tol: IPOPT convergence tolerance.
-        max_wall_s: IPOPT wall-time limit per solve (s).
-        max_makespan_factor: upper bound of ``t_f`` in lower bounds.
-        output_dt_s: the knots are merged with a uniform grid of this spacing in the output
-            (the motion, linear between knots, is unchanged).
+    Every field is declared with :func:`fiberplan.settings.setting` (doc, unit, valid range,
+    group). ``warm_start`` names the starts to solve from: ``"straight"`` (constant-speed joint
+    interpolation over ``straight_stretch`` lower bounds), ``"sequential"`` (one positioner
+    after another, longest move first) or a registered planner (its trajectory, resampled);
+    the best converged candidate is kept. In ``"time"`` mode the objective is ``t_f / t_LB +
+    energy_weight E / E_ref``; in ``"energy"`` mode ``E / E_ref`` at a fixed makespan.
     """
 
-    mode: CentralMode = "time"
-    steps: int = 40
-    energy_weight: float = 0.01
-    makespan_s: float | None = None
-    makespan_factor: float = 1.5
-    warm_start: tuple[str, ...] = (_STRAIGHT, _SEQUENTIAL)
-    straight_stretch: float = 1.2
-    margin_mm: float = 0.02
-    activate_mm: float = 2.5
-    activation_window: int = 2
-    lazy_rounds: int = 4
-    max_iter: int = 1500
-    tol: float = 1e-7
-    max_wall_s: float = 120.0
-    max_makespan_factor: float = 8.0
-    output_dt_s: float = 0.01
+    mode: CentralMode = setting("time", "minimise the makespan (time) or the energy at a fixed makespan", choices=("time", "energy"),
+                                group="problem")
+    steps: int = setting(40, "T, number of intervals of the discretised motion", low=2, high=2000, group="problem")
+    energy_weight: float = setting(0.01, "w_E, weight of E / E_ref against t_f / t_LB in time mode", low=0.0, high=1e6, group="problem")
+    makespan_s: float | None = setting(None, "energy mode: the fixed final time (null: makespan_factor lower bounds)", unit="s",
+                                       low=0.0, high=1e5, low_open=True, optional=True, group="problem", kind="float")
+    makespan_factor: float = setting(1.5, "energy mode default final time, in lower bounds", low=0.0, high=100.0, low_open=True,
+                                     group="problem")
+    warm_start: tuple[str, ...] = setting((_STRAIGHT, _SEQUENTIAL), "starts to solve from: straight, sequential or planner names",
+                                          group="problem", kind="list")
+    straight_stretch: float = setting(1.2, "duration of the straight warm start, in lower bounds", low=0.0, high=100.0, low_open=True,
+                                      group="problem")
+    margin_mm: float = setting(0.02, "extra clearance m demanded by the collision constraints", unit="mm", low=0.0, high=10.0,
+                               group="problem")
+    activate_mm: float = setting(2.5, "a capsule combination gets a separating line where its clearance along the guess is below this",
+                                 unit="mm", low=0.0, high=1000.0, group="problem")
+    activation_window: int = setting(2, "the initial activation also covers this many intervals around each close approach", low=0,
+                                     high=1000, group="problem")
+    lazy_rounds: int = setting(4, "re-solves allowed after adding the lines a solution made necessary", low=0, high=100, group="solver")
+    max_iter: int = setting(1500, "IPOPT iteration limit per solve", low=2, high=1_000_000, group="solver")
+    tol: float = setting(1e-7, "IPOPT convergence tolerance", low=0.0, high=1.0, low_open=True, group="solver")
+    max_wall_s: float = setting(120.0, "IPOPT wall-time limit per solve", unit="s", low=0.0, high=1e6, low_open=True, group="solver")
+    max_makespan_factor: float = setting(8.0, "upper bound of t_f in lower bounds", low=1.0, high=1000.0, group="problem")
+    output_dt_s: float = setting(0.01, "the knots are merged with a uniform grid of this spacing in the output", unit="s", low=1e-4,
+                                 high=10.0, group="output")
 
     @classmethod
     def for_instrument(cls, instrument: Instrument) -> CentralSettings:
@@ -128,31 +118,9 @@ class CentralSettings:
             object.__setattr__(self, "warm_start", tuple(s for s in self.warm_start.split(",") if s))
         else:
             object.__setattr__(self, "warm_start", tuple(self.warm_start))
-        if self.mode not in ("time", "energy"):
-            raise PlannerError(f"central: mode must be 'time' or 'energy', found {self.mode!r}")
-        for label, count in (("steps", self.steps), ("max_iter", self.max_iter)):
-            if int(count) != count or count < 2:
-                raise PlannerError(f"central: {label} must be an integer >= 2, found {count}")
-        for label, count in (("lazy_rounds", self.lazy_rounds), ("activation_window", self.activation_window)):
-            if int(count) != count or count < 0:
-                raise PlannerError(f"central: {label} must be an integer >= 0, found {count}")
-        positive: dict[str, float] = {
-            "makespan_factor": self.makespan_factor,
-            "straight_stretch": self.straight_stretch,
-            "tol": self.tol,
-            "max_wall_s": self.max_wall_s,
-            "max_makespan_factor": self.max_makespan_factor,
-            "output_dt_s": self.output_dt_s,
-        }
-        for name, value in positive.items():
-            if not (np.isfinite(value) and value > 0):
-                raise PlannerError(f"central: {name} must be a finite number > 0, found {value}")
-        non_negative: dict[str, float] = {"energy_weight": self.energy_weight, "margin_mm": self.margin_mm, "activate_mm": self.activate_mm}
-        for name, value in non_negative.items():
-            if not (np.isfinite(value) and value >= 0):
-                raise PlannerError(f"central: {name} must be a finite number >= 0, found {value}")
-        if self.makespan_s is not None and not (np.isfinite(self.makespan_s) and self.makespan_s > 0):
-            raise PlannerError(f"central: makespan_s must be a number > 0 or None, found {self.makespan_s}")
+        check_settings(self, "central")
+        if not all(isinstance(w, str) for w in self.warm_start):
+            raise SettingsError(f"central: warm_start must be a list of names, found {list(self.warm_start)!r}")
         if not self.warm_start:
             raise PlannerError("central: warm_start needs at least one start, e.g. ['straight'] or ['straight', 'dnf']")
         if "central" in self.warm_start:
@@ -610,8 +578,12 @@ def _solve_candidate(problem: _Problem, source: str, guess_q: np.ndarray, guess_
         if not missing.any():
             break
         mask |= missing
-    converged = raw["status"] in _IPOPT_SUCCESS and not (_close_intervals(problem.scenario, q, st.activate_mm) & ~mask).any()
+    finite = bool(np.all(np.isfinite(q)) and np.isfinite(tau))
+    converged = finite and raw["status"] in _IPOPT_SUCCESS and not (_close_intervals(problem.scenario, q, st.activate_mm) & ~mask).any()
     status = raw["status"] if raw["status"] not in _IPOPT_SUCCESS or converged else "Lazy_Rounds_Exhausted"
+    if not finite:
+        status = "Non_Finite_Solution"
+        q = np.where(np.isfinite(q), q, 0.0)
     return Candidate(
         source=source,
         status=status,
@@ -686,9 +658,19 @@ def _trajectory_guess(problem: _Problem, result: PlanResult) -> tuple[np.ndarray
 
 
 def _hold_result(scenario: Scenario, settings: CentralSettings, stats: dict[str, Any]) -> PlanResult:
-    """Every positioner holds still: safe, and ``failed`` where a target was not reached."""
+    """Every positioner holds still: safe, and ``failed`` where a target was not reached.
+
+    The result says why in its warnings (the command line prints them).
+    """
     at_target = np.all(np.abs(scenario.target - scenario.start) < 1e-12, axis=1)
     joints = np.stack([scenario.start, scenario.start])
+    warnings: tuple[str, ...] = ()
+    if not at_target.all():
+        tried = ", ".join(f"{c['source']}: {c['status']}" for c in stats.get("candidates", [])) or "no warm start"
+        rejected = stats.get("rejected") or []
+        why = (f"no converged candidate passed the verifier ({len(rejected)} rejected)" if rejected
+               else f"IPOPT converged from no warm start ({tried})")
+        warnings = (f"central: gave up: {why}; every positioner holds still and {int((~at_target).sum())} are marked failed",)
     return PlanResult(
         scenario=scenario,
         trajectory=Trajectory(np.array([0.0, settings.output_dt_s]), joints),
@@ -696,6 +678,7 @@ def _hold_result(scenario: Scenario, settings: CentralSettings, stats: dict[str,
         planner="central",
         settings=_settings_dict(settings),
         stats=stats,
+        warnings=warnings,
     )
 
 

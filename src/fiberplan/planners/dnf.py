@@ -46,6 +46,7 @@ from fiberplan.instrument import Instrument
 from fiberplan.kinematics import fiber_jacobian, fiber_positions, move_times
 from fiberplan.planners import ProgressCallback, instrument_defaults
 from fiberplan.scenario import Scenario
+from fiberplan.settings import check_settings, check_step_budget, setting
 from fiberplan.trajectory import PlanResult, Trajectory
 
 AttractionKind = Literal["joint", "fiber"]
@@ -74,71 +75,65 @@ _MIN_SEP2_FRACTION = 1e-4
 
 @dataclass(frozen=True)
 class DnfSettings:
-    """Settings of the ``dnf`` planner.
+    """Settings of the ``dnf`` planner (defaults per instrument: :meth:`for_instrument`).
 
-    Attributes:
-        dt_s: control step and trajectory sample spacing (s); reference 000 table 4: 10 ms.
-        lambda_attract: ``lambda_1``, weight of the attraction (1 for DESI, reference 000
-            table 4; other instruments scaled so that the loop gain is the same).
-        lambda_repel: ``lambda_2``, weight of the repulsion (mm^2 when ``lambda_attract`` is
-            dimensionless).
-        envelope_mm: clearance below which the repulsion acts, ``D - d`` (reference 000
-            table 3: D = 4 mm, d = 2 mm, so 2 mm for DESI).
-        potential: ``"reference"``: the corrected term of reference 000 eq. 2,
-            ``(D^2 - r^2) / (r^2 - d^2)``, whose slope jumps at ``r = D``; ``"smooth"``:
-            ``(D^2 - r^2)^2 / ((r^2 - d^2)(D^2 - d^2))``, the same barrier at ``r -> d`` with a
-            slope that vanishes at ``r = D``.
-        attraction: ``"joint"``: ``rho^2 ||q - q_T||^2`` with ``rho`` the positioner's reach
-            (a straight joint move, never across a hard stop); ``"fiber"``: the squared fiber
-            distance of reference 000 eq. 2.
-        separation: ``"capsule"``: segment distance of every same-layer capsule pair;
-            ``"ellipse"``: reference 002 eq. 7, the weighted (ellipse) distance between the
-            centres of two arm capsules, segment distance for the other combinations.
-        zone_priority: ``"none"``: one envelope for all; ``"move_time"``: per-positioner
-            envelopes (reference 002 section 2.4), the smallest for the longest move.
-        zone_spread: relative spread of the per-positioner envelopes: margins range over
-            ``envelope_mm * [1 - spread, 1 + spread]``.
-        goal_envelope_cap: cap each pair's envelope at its clearance in the goal
-            configuration, so that the targets are an equilibrium of every ``psi_i``.
-        safety_margin_mm: smallest clearance the safety layer keeps along every step.
-        safety_motion_factor: the safety layer requires ``c0 + c1 >= (1 + factor) B + 2 margin``
-            for a step with clearances ``c0``, ``c1`` at its ends and motion bound ``B``.
-        max_halvings: halvings of a step before the positioner is held for this step.
-        deadlock_window_s: a positioner that has not come ``progress_mm`` closer to its
-            target over this window is stuck.
-        progress_mm: progress threshold of the deadlock test (default: the tolerance).
-        deadlock_escape: ``"none"``: the DNF of references 000/002 as printed (deadlocks are
-            only detected); ``"retreat"``: when a positioner has been stuck for
-            ``escape_window_s`` inside a neighbour's envelope, the one of the pair that is
-            already at its target, else the one with the shorter initial move, folds its beta arm for ``retreat_s`` (a temporary sub-goal,
-            as positioner 5 yields in reference 002, fig. 5), at most ``max_retreats`` times.
-        escape_window_s: no-progress window that starts a retreat.
-        retreat_s: duration of a retreat.
-        max_retreats: retreats per positioner and run.
-        time_limit_s: stop here at the latest; ``None``: ``4 x`` the scenario's lower bound
-            plus two deadlock windows.
+    Every field is declared with :func:`fiberplan.settings.setting` (doc, unit, valid range,
+    group). Notes on some of them:
+
+    - ``potential``: ``"reference"`` is the corrected term of reference 000 eq. 2,
+      ``(D^2 - r^2) / (r^2 - d^2)``, whose slope jumps at ``r = D``; ``"smooth"`` is
+      ``(D^2 - r^2)^2 / ((r^2 - d^2)(D^2 - d^2))``, the same barrier with a slope that vanishes at D.
+    - ``attraction``: ``"joint"`` is ``rho^2 ||q - q_T||^2`` with ``rho`` the reach (a straight
+      joint move, never across a hard stop); ``"fiber"`` the squared fiber distance of eq. 2.
+    - ``separation``: ``"ellipse"`` is reference 002 eq. 7 for two arm capsules.
+    - ``zone_priority = "move_time"``: per-positioner envelopes (reference 002 section 2.4),
+      margins over ``envelope_mm * [1 - spread, 1 + spread]``, the smallest for the longest move.
+    - ``deadlock_escape = "retreat"`` (not part of the printed method): a positioner stuck for
+      ``escape_window_s`` inside a neighbour's envelope makes the one of the pair already at its
+      target (else the one with the shorter move) fold its beta arm for ``retreat_s``, as
+      positioner 5 yields in reference 002, fig. 5.
     """
 
-    dt_s: float = _DESI_DT_S
-    lambda_attract: float = 1.0
-    lambda_repel: float = _REPULSION_RATIO * _DESI_RHO_MM**2
-    envelope_mm: float = 2.0
-    potential: PotentialKind = "reference"
-    attraction: AttractionKind = "joint"
-    separation: SeparationKind = "capsule"
-    zone_priority: PriorityKind = "none"
-    zone_spread: float = 0.5
-    goal_envelope_cap: bool = True
-    safety_margin_mm: float = 1e-3
-    safety_motion_factor: float = 0.1
-    max_halvings: int = 4
-    deadlock_window_s: float = 1.5
-    progress_mm: float = 0.1
-    deadlock_escape: EscapeKind = "retreat"
-    escape_window_s: float = 0.2
-    retreat_s: float = 0.5
-    max_retreats: int = 3
-    time_limit_s: float | None = None
+    dt_s: float = setting(_DESI_DT_S, "control step and trajectory sample spacing (reference 000 table 4: 10 ms)", unit="s",
+                          low=1e-4, high=1.0, group="run")
+    # --- the potential
+    lambda_attract: float = setting(1.0, "lambda_1, weight of the attraction (1 for DESI, reference 000 table 4)", low=0.0,
+                                    high=1e9, low_open=True, group="potential")
+    lambda_repel: float = setting(_REPULSION_RATIO * _DESI_RHO_MM**2, "lambda_2, weight of the repulsion", unit="mm^2", low=0.0,
+                                  high=1e12, group="potential")
+    envelope_mm: float = setting(2.0, "clearance below which the repulsion acts, D - d (reference 000 table 3: 2 mm)", unit="mm",
+                                 low=0.0, high=100.0, low_open=True, group="potential")
+    potential: PotentialKind = setting("reference", "form of the repulsive term", choices=("reference", "smooth"), group="potential")
+    attraction: AttractionKind = setting("joint", "attraction in joint space or in the focal plane", choices=("joint", "fiber"),
+                                         group="potential")
+    separation: SeparationKind = setting("capsule", "capsule segment distance, or reference 002's ellipse distance for arms",
+                                         choices=("capsule", "ellipse"), group="potential")
+    zone_priority: PriorityKind = setting("none", "one envelope for all, or per-positioner envelopes by move time",
+                                          choices=("none", "move_time"), group="potential")
+    zone_spread: float = setting(0.5, "relative spread of the per-positioner envelopes", low=0.0, high=1.0, high_open=True,
+                                 group="potential")
+    goal_envelope_cap: bool = setting(True, "cap each pair's envelope at its clearance at the goals (targets an equilibrium)",
+                                      group="potential")
+    # --- the safety layer
+    safety_margin_mm: float = setting(1e-3, "smallest clearance the safety layer keeps along every step", unit="mm", low=0.0,
+                                      high=10.0, group="safety")
+    safety_motion_factor: float = setting(0.1, "a step needs c0 + c1 >= (1 + factor) B + 2 margin", low=0.0, high=100.0,
+                                          group="safety")
+    max_halvings: int = setting(4, "halvings of a step before the positioner holds for this step", low=0, high=30, group="safety")
+    # --- deadlocks
+    deadlock_window_s: float = setting(1.5, "a positioner not progress_mm closer over this window is stuck", unit="s", low=0.0,
+                                       high=1e5, low_open=True, group="deadlocks")
+    progress_mm: float = setting(0.1, "progress threshold of the deadlock test (instrument default: the tolerance)", unit="mm",
+                                 low=0.0, high=100.0, low_open=True, group="deadlocks")
+    deadlock_escape: EscapeKind = setting("retreat", "none: the printed method; retreat: a temporary fold sub-goal",
+                                          choices=("none", "retreat"), group="deadlocks")
+    escape_window_s: float = setting(0.2, "no-progress window that starts a retreat", unit="s", low=0.0, high=1e5, low_open=True,
+                                     group="deadlocks")
+    retreat_s: float = setting(0.5, "duration of a retreat", unit="s", low=0.0, high=1e5, low_open=True, group="deadlocks")
+    max_retreats: int = setting(3, "retreats per positioner and run", low=0, high=1000, group="deadlocks")
+    # --- run length
+    time_limit_s: float | None = setting(None, "stop here at the latest (null: 4 x the lower bound plus two deadlock windows)",
+                                         unit="s", low=0.0, high=1e5, low_open=True, optional=True, group="run", kind="float")
 
     @classmethod
     def for_instrument(cls, instrument: Instrument) -> DnfSettings:
@@ -173,40 +168,7 @@ class DnfSettings:
         return instrument_defaults(instrument, "dnf", defaults)
 
     def __post_init__(self) -> None:
-        positive = {
-            "dt_s": self.dt_s,
-            "lambda_attract": self.lambda_attract,
-            "envelope_mm": self.envelope_mm,
-            "deadlock_window_s": self.deadlock_window_s,
-            "progress_mm": self.progress_mm,
-            "escape_window_s": self.escape_window_s,
-            "retreat_s": self.retreat_s,
-        }
-        for label, value in positive.items():
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise PlannerError(f"dnf: {label} must be a finite number > 0, found {value!r}")
-        for label, value in (("lambda_repel", self.lambda_repel), ("safety_margin_mm", self.safety_margin_mm),
-                             ("safety_motion_factor", self.safety_motion_factor)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise PlannerError(f"dnf: {label} must be a finite number >= 0, found {value!r}")
-        if self.attraction not in ("joint", "fiber"):
-            raise PlannerError(f"dnf: attraction must be 'joint' or 'fiber', found {self.attraction!r}")
-        if self.separation not in ("capsule", "ellipse"):
-            raise PlannerError(f"dnf: separation must be 'capsule' or 'ellipse', found {self.separation!r}")
-        if self.potential not in ("reference", "smooth"):
-            raise PlannerError(f"dnf: potential must be 'reference' or 'smooth', found {self.potential!r}")
-        if self.zone_priority not in ("none", "move_time"):
-            raise PlannerError(f"dnf: zone_priority must be 'none' or 'move_time', found {self.zone_priority!r}")
-        if not (0.0 <= self.zone_spread < 1.0):
-            raise PlannerError(f"dnf: zone_spread must lie in [0, 1), found {self.zone_spread!r}")
-        if self.deadlock_escape not in ("none", "retreat"):
-            raise PlannerError(f"dnf: deadlock_escape must be 'none' or 'retreat', found {self.deadlock_escape!r}")
-        if not (isinstance(self.max_retreats, int) and self.max_retreats >= 0):
-            raise PlannerError(f"dnf: max_retreats must be an integer >= 0, found {self.max_retreats!r}")
-        if not (isinstance(self.max_halvings, int) and 0 <= self.max_halvings <= 30):
-            raise PlannerError(f"dnf: max_halvings must be an integer from 0 to 30, found {self.max_halvings!r}")
-        if self.time_limit_s is not None and not (math.isfinite(self.time_limit_s) and self.time_limit_s > 0):
-            raise PlannerError(f"dnf: time_limit_s must be > 0 or None, found {self.time_limit_s!r}")
+        check_settings(self, "dnf")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -760,6 +722,7 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
     lower = float(initial_move.max())
     time_limit = settings.time_limit_s if settings.time_limit_s is not None else 4.0 * lower + 2.0 * settings.deadlock_window_s
     max_steps = max(1, math.ceil(time_limit / dt - 1e-9))
+    check_step_budget("dnf", max_steps, dt, time_limit)
     window = max(1, round(settings.deadlock_window_s / dt))
     escape_window = max(1, round(settings.escape_window_s / dt))
     retreat_steps = max(1, round(settings.retreat_s / dt))
@@ -782,6 +745,7 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
     one_step = dt * speeds * (1.0 - 1e-9)
     t_grad = t_safe = 0.0
     step_count = 0
+    non_finite_steps = 0
     for step_count in range(1, max_steps + 1):
         t0 = time.perf_counter()
         g_rep, clear0 = _repulsion_gradient(scenario, model, q, settings.lambda_repel, settings.potential, culling)
@@ -803,6 +767,10 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
         step[snap] = (target - q)[snap]
         step = np.clip(q + step, lim[:, 0], lim[:, 1]) - q
         snap_step = step[snap]
+        bad_step = ~np.isfinite(step).all(axis=1)  # a non-finite gradient holds the positioner
+        if bad_step.any():
+            step[bad_step] = 0.0
+            non_finite_steps += int(bad_step.sum())
         t1 = time.perf_counter()
         step = _safe_steps(scenario, pairs, q, step, clear0, settings, rho_motion, safety)
         t2 = time.perf_counter()
@@ -860,6 +828,7 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
         "n_deadlocked": int(np.sum(outcome == "deadlocked")),
         "n_failed": int(np.sum(outcome == "failed")),
         "n_ever_stuck": int(stuck_ever.sum()),
+        "non_finite_steps_held": non_finite_steps,
         "retreats": escape.started,
         "safety_interventions": safety.interventions,
         "safety_held_steps": safety.held,
@@ -873,6 +842,15 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
             inst, settings.lambda_attract, max(settings.lambda_repel, 1e-300), settings.envelope_mm
         ).holds,
     }
+    warnings = []
+    short = int(np.sum(scenario.has_target & ~reached))
+    if short:
+        warnings.append(
+            f"dnf: {short} of {int(scenario.has_target.sum())} positioners did not reach their targets "
+            f"({stats['n_deadlocked']} deadlocked, {stats['n_failed']} still moving at the time limit of {time_limit:.2f} s)"
+        )
+    if non_finite_steps:
+        warnings.append(f"dnf: {non_finite_steps} non-finite step(s) were held (a positioner at a singular configuration)")
     return PlanResult(
         scenario=scenario,
         trajectory=Trajectory(times, joints),
@@ -880,4 +858,5 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
         planner="dnf",
         settings=dataclasses.asdict(settings),
         stats=stats,
+        warnings=tuple(warnings),
     )

@@ -56,9 +56,19 @@ from fiberplan.layout import neighbour_lists
 from fiberplan.planners import ProgressCallback, instrument_defaults
 from fiberplan.planners.mpc_detour import PairResolution, detour_route, pair_resolution
 from fiberplan.planners.mpc_exec import QpBatch, make_executor
-from fiberplan.planners.mpc_qp import STATUS_FAILED, STATUS_INACCURATE, STATUS_SOLVED, OsqpOptions, QpLayout, QpWeights
+from fiberplan.planners.mpc_qp import (
+    STATUS_ERROR,
+    STATUS_INACCURATE,
+    STATUS_NON_FINITE,
+    STATUS_SOLVED,
+    USABLE,
+    OsqpOptions,
+    QpLayout,
+    QpWeights,
+)
 from fiberplan.planners.mpc_schedule import start_schedule
 from fiberplan.scenario import Scenario
+from fiberplan.settings import check_settings, check_step_budget, setting
 from fiberplan.trajectory import PlanResult, Trajectory
 
 QP_SOLVERS = ("osqp", "clarabel", "proxqp", "daqp", "highs", "scs", "quadprog", "cvxopt", "piqp")
@@ -68,100 +78,79 @@ QP_SOLVERS = ("osqp", "clarabel", "proxqp", "daqp", "highs", "scs", "quadprog", 
 class MpcSettings:
     """Settings of the ``mpc`` planner (defaults per instrument: :meth:`for_instrument`).
 
-    Attributes:
-        dt_s: control step, also the length ``h`` of each horizon step (s).
-        horizon_steps: ``H``, steps in the prediction horizon.
-        weight_tracking: weight on the squared deviation from the time-optimal reference
-            (per squared full-speed step).
-        weight_terminal: the same on the last horizon step.
-        weight_input: weight on the squared normalised input ``u / omega_max``.
-        weight_input_change: weight on the squared change of normalised input.
-        slack_weight_linear: exact-penalty weight on the separation slacks (per mm).
-        slack_weight_quadratic: small quadratic slack weight (per mm^2).
-        priority_slack_ratio: factor on the slack weights of the higher-priority side of a pair.
-        margin_mm: separation the lower-priority side keeps in its QP (mm).
-        priority_margin_mm: separation the higher-priority side keeps in its QP (mm).
-        safety_margin_mm: smallest clearance the safety layer lets an executed step reach (mm).
-        conflict_radius_mm: pairs closer than this (now or along the published plans) get QP
-            constraints (mm).
-        max_neighbour_constraints: neighbour slots per QP; when more neighbours are in
-            conflict, the closest ones (smallest predicted clearance) are kept.
-        max_input_change: optional bound on ``|u(k+1) - u(k)| / omega_max`` per step.
-        deadlock_window_steps: steps without progress that mark a positioner deadlocked.
-        max_duration_factor: the run stops after this many times the lower bound ...
-        max_duration_extra_s: ... plus this many seconds (default: one turn of the slower
-            joint, the DNF's budget, :attr:`Instrument.full_turn_s`).
-        stop_after_stalled_windows: the run also stops once every positioner not at its target
-            has made no progress for this many deadlock windows (0: never).
-        wait_rules: resolve a deadlocked pair whose targets impose an order by sending the
-            one that must wait to a waiting configuration (:func:`waiting_configuration`).
-        detours: a positioner deadlocked a second time, or still stuck two windows after it
-            was first, gets a detour route around its neighbours (``mpc_detour.detour_route``)
-            before it retreats.
-        detour_max: detour routes planned per positioner at most.
-        detour_after_deadlocks: a positioner found deadlocked this many times gets a detour.
-        start_schedule: before the first step, give positioners start delays so that their
-            delayed straight moves keep ``margin_mm`` pairwise where a delay can
-            (``mpc_schedule.start_schedule``); each one's reference starts after its delay.
-        schedule_delay_steps: granularity of the start delays (control steps).
-        schedule_slack: every delayed move must end by this many times the longest move.
-        schedule_l_paths: a positioner the start schedule cannot place on its straight move
-            tries the two L-shaped moves (one joint, then the other) and, if one fits, follows
-            it as a route through its corner.
-        schedule_space_time: a positioner still unplaced searches a timed path through a grid
-            of its joint configurations x time around its neighbours as scheduled, and follows
-            it as a route whose waypoints it leaves no earlier than scheduled.
-        schedule_cell_steps: full-speed control steps per grid cell and time layer of that search.
-        schedule_repair: a positioner no timed path fits goes first: each placed neighbour in turn
-            leaves the schedule, the positioner searches around the others, and the neighbour is
-            placed again after it (``mpc_schedule.start_schedule``, ``repair``).
-        route_progress: a positioner on a route (an L-shaped move, a timed path, a detour)
-            progresses when its time-to-go along the route improves, not only its straight
-            time-to-go to the target (which the first leg of an L-shaped move need not improve).
-        executor: ``sequential`` or ``parallel``.
-        workers: processes of the parallel executor (the planning process counts as one).
-        qp_solver: ``osqp`` (persistent workspaces, the fast path) or a qpsolvers backend name.
-        osqp_eps: OSQP absolute and relative tolerance.
-        osqp_max_iter: OSQP iteration limit.
+    Every field is declared with :func:`fiberplan.settings.setting`: its documentation, unit,
+    valid range and group (``fiberplan planners --settings mpc`` lists them).
     """
 
-    dt_s: float = 0.01
-    horizon_steps: int = 4
-    weight_tracking: float = 1.0
-    weight_terminal: float = 5.0
-    weight_input: float = 0.01
-    weight_input_change: float = 0.02
-    slack_weight_linear: float = 200.0
-    slack_weight_quadratic: float = 10.0
-    priority_slack_ratio: float = 0.01
-    margin_mm: float = 0.3
-    priority_margin_mm: float = 0.1
-    safety_margin_mm: float = 0.02
-    conflict_radius_mm: float = 1.0
-    max_neighbour_constraints: int = 6
-    max_input_change: float | None = None
-    deadlock_window_steps: int = 40
-    deadlock_progress_fraction: float = 0.0125
-    max_duration_factor: float = 4.0
-    max_duration_extra_s: float = 1.0
-    stop_after_stalled_windows: int = 8
-    wait_rules: bool = True
-    detours: bool = True
-    detour_max: int = 3
-    detour_after_deadlocks: int = 2
-    start_schedule: bool = False
-    schedule_delay_steps: int = 4
-    schedule_slack: float = 1.2
-    schedule_l_paths: bool = False
-    schedule_space_time: bool = False
-    schedule_cell_steps: int = 2
-    schedule_repair: bool = False
-    route_progress: bool = False
-    executor: str = "sequential"
-    workers: int = 2
-    qp_solver: str = "osqp"
-    osqp_eps: float = 1e-3
-    osqp_max_iter: int = 400
+    # --- run length
+    dt_s: float = setting(0.01, "control step, also the length h of each horizon step", unit="s", low=1e-3, high=1.0, group="run")
+    max_duration_factor: float = setting(4.0, "the run stops after this many times the lower bound ...", low=0.0, high=100.0,
+                                         low_open=True, group="run")
+    max_duration_extra_s: float = setting(1.0, "... plus this long (instrument default: one turn of the slower joint)", unit="s",
+                                          low=0.0, high=1e5, group="run")
+    stop_after_stalled_windows: int = setting(8, "stop once nothing not at its target has progressed for this many deadlock windows "
+                                              "(0: never)", unit="windows", low=0, high=1000, group="run")
+    # --- the QP
+    horizon_steps: int = setting(4, "H, steps in the prediction horizon", unit="steps", low=1, high=100, group="qp")
+    weight_tracking: float = setting(1.0, "weight of the squared deviation from the time-optimal reference (per squared full step)",
+                                     low=0.0, high=1e6, low_open=True, group="qp")
+    weight_terminal: float = setting(5.0, "the same on the last horizon step", low=0.0, high=1e6, low_open=True, group="qp")
+    weight_input: float = setting(0.01, "weight of the squared normalised input u / omega_max", low=0.0, high=1e6, group="qp")
+    weight_input_change: float = setting(0.02, "weight of the squared change of normalised input", low=0.0, high=1e6, group="qp")
+    slack_weight_linear: float = setting(200.0, "exact-penalty weight of the separation slacks", unit="1/mm", low=0.0, high=1e9,
+                                         low_open=True, group="qp")
+    slack_weight_quadratic: float = setting(10.0, "small quadratic slack weight", unit="1/mm^2", low=0.0, high=1e9, group="qp")
+    priority_slack_ratio: float = setting(0.01, "factor on the slack weights of the higher-priority side of a pair", low=0.0,
+                                          high=1.0, group="qp")
+    margin_mm: float = setting(0.3, "separation the lower-priority side of a pair keeps in its QP (instrument default: 1.2 step "
+                               "motions)", unit="mm", low=0.0, high=10.0, group="qp")
+    priority_margin_mm: float = setting(0.1, "separation the higher-priority side keeps in its QP", unit="mm", low=0.0, high=10.0,
+                                        group="qp")
+    conflict_radius_mm: float = setting(1.0, "pairs closer than this, now or along the published plans, get QP constraints",
+                                        unit="mm", low=0.0, high=100.0, group="qp")
+    max_neighbour_constraints: int = setting(6, "neighbour slots per QP; the closest neighbours in conflict are kept", low=1,
+                                             high=64, group="qp")
+    max_input_change: float | None = setting(None, "bound on |u(k+1) - u(k)| / omega_max per step (null: none)", low=0.0, high=2.0,
+                                             low_open=True, optional=True, group="qp", kind="float")
+    # --- the safety layer
+    safety_margin_mm: float = setting(0.02, "smallest clearance the safety layer lets an executed step reach", unit="mm", low=0.0,
+                                      high=10.0, group="safety")
+    # --- deadlocks
+    deadlock_window_steps: int = setting(40, "steps without progress that mark a positioner deadlocked", unit="steps", low=1,
+                                         high=100000, group="deadlocks")
+    deadlock_progress_fraction: float = setting(0.0125, "progress counts when the time-to-go falls by this fraction of a window",
+                                                low=0.0, high=1.0, high_open=True, group="deadlocks")
+    wait_rules: bool = setting(True, "a deadlocked pair whose targets impose an order: the one that must wait goes to a waiting "
+                               "configuration", group="deadlocks")
+    detours: bool = setting(True, "a positioner deadlocked again gets a detour route around its neighbours before it retreats",
+                            group="deadlocks")
+    detour_max: int = setting(3, "detour routes planned per positioner at most", low=1, high=100, group="deadlocks")
+    detour_after_deadlocks: int = setting(2, "a positioner found deadlocked this many times gets a detour", low=1, high=100,
+                                          group="deadlocks")
+    route_progress: bool = setting(False, "on a route (L-shaped move, timed path, detour) progress is measured along the route",
+                                   group="deadlocks")
+    # --- the start schedule
+    start_schedule: bool = setting(False, "before the first step, give positioners start delays so that their delayed straight "
+                                   "moves keep margin_mm pairwise", group="schedule")
+    schedule_delay_steps: int = setting(4, "granularity of the start delays", unit="steps", low=1, high=10000, group="schedule")
+    schedule_slack: float = setting(1.2, "every delayed move must end by this many times the longest move", low=1.0, high=100.0,
+                                    group="schedule")
+    schedule_l_paths: bool = setting(False, "a positioner no delay fits tries the two L-shaped moves (one joint, then the other)",
+                                     group="schedule")
+    schedule_space_time: bool = setting(False, "a positioner still unplaced searches a timed path through its joint grid x time",
+                                        group="schedule")
+    schedule_cell_steps: int = setting(2, "full-speed control steps per grid cell and time layer of that search", unit="steps",
+                                       low=1, high=1000, group="schedule")
+    schedule_repair: bool = setting(False, "a positioner no timed path fits goes first; a placed neighbour is placed again after it",
+                                    group="schedule")
+    # --- the solver
+    executor: str = setting("sequential", "where the QPs are solved", choices=("sequential", "parallel"), group="solver")
+    workers: int = setting(2, "processes of the parallel executor (the planning process counts as one)", low=1, high=256,
+                           group="solver")
+    qp_solver: str = setting("osqp", "osqp (persistent workspaces, the fast path) or a qpsolvers backend", choices=QP_SOLVERS,
+                             group="solver")
+    osqp_eps: float = setting(1e-3, "OSQP absolute and relative tolerance", low=0.0, high=1.0, low_open=True, group="solver")
+    osqp_max_iter: int = setting(400, "OSQP iteration limit per solve", low=1, high=1_000_000, group="solver")
 
     @classmethod
     def for_instrument(cls, instrument: Instrument) -> MpcSettings:
@@ -171,9 +160,8 @@ class MpcSettings:
         radius are multiples of the largest distance any capsule point moves in one step
         (``step_motion_mm``), so slow (MOONS) and fast (DESI) motors get the same behaviour
         per step. An instrument file may override any setting in a ``[planner_defaults.mpc]``
-        table (DESI's turns the start schedule and its L-shaped moves on: measured to help
-        there, not on MOONS). The time budget beyond ``4 x`` the lower bound is the DNF's,
-        one turn of the slower joint.
+        table (every preset turns the start schedule on). The time budget beyond ``4 x`` the
+        lower bound is the DNF's, one turn of the slower joint.
 
         Raises:
             PlannerError: the ``[planner_defaults.mpc]`` table names an unknown setting.
@@ -191,51 +179,7 @@ class MpcSettings:
         return instrument_defaults(instrument, "mpc", defaults)
 
     def __post_init__(self) -> None:
-        positive = {
-            "dt_s": self.dt_s,
-            "weight_tracking": self.weight_tracking,
-            "weight_terminal": self.weight_terminal,
-            "slack_weight_linear": self.slack_weight_linear,
-            "max_duration_factor": self.max_duration_factor,
-            "osqp_eps": self.osqp_eps,
-        }
-        for name, value in positive.items():
-            if not (np.isfinite(value) and value > 0):
-                raise PlannerError(f"mpc: {name} must be a finite number > 0, found {value}")
-        non_negative = {
-            "weight_input": self.weight_input,
-            "weight_input_change": self.weight_input_change,
-            "slack_weight_quadratic": self.slack_weight_quadratic,
-            "priority_slack_ratio": self.priority_slack_ratio,
-            "margin_mm": self.margin_mm,
-            "priority_margin_mm": self.priority_margin_mm,
-            "safety_margin_mm": self.safety_margin_mm,
-            "conflict_radius_mm": self.conflict_radius_mm,
-            "max_duration_extra_s": self.max_duration_extra_s,
-            "deadlock_progress_fraction": self.deadlock_progress_fraction,
-        }
-        for name, value in non_negative.items():
-            if not (np.isfinite(value) and value >= 0):
-                raise PlannerError(f"mpc: {name} must be a finite number >= 0, found {value}")
-        if int(self.stop_after_stalled_windows) != self.stop_after_stalled_windows or self.stop_after_stalled_windows < 0:
-            raise PlannerError(f"mpc: stop_after_stalled_windows must be an integer >= 0, found {self.stop_after_stalled_windows}")
-        for name, value in (("horizon_steps", self.horizon_steps), ("deadlock_window_steps", self.deadlock_window_steps),
-                            ("workers", self.workers), ("osqp_max_iter", self.osqp_max_iter),
-                            ("max_neighbour_constraints", self.max_neighbour_constraints), ("detour_max", self.detour_max),
-                            ("detour_after_deadlocks", self.detour_after_deadlocks),
-                            ("schedule_delay_steps", self.schedule_delay_steps), ("schedule_cell_steps", self.schedule_cell_steps)):
-            if int(value) != value or value < 1:
-                raise PlannerError(f"mpc: {name} must be an integer >= 1, found {value}")
-        if not (np.isfinite(self.schedule_slack) and self.schedule_slack >= 1):
-            raise PlannerError(f"mpc: schedule_slack must be a finite number >= 1, found {self.schedule_slack}")
-        if self.deadlock_progress_fraction >= 1:
-            raise PlannerError(f"mpc: deadlock_progress_fraction must be < 1, found {self.deadlock_progress_fraction}")
-        if self.max_input_change is not None and not (self.max_input_change > 0):
-            raise PlannerError(f"mpc: max_input_change must be > 0 or None, found {self.max_input_change}")
-        if self.executor not in ("sequential", "parallel"):
-            raise PlannerError(f"mpc: executor must be 'sequential' or 'parallel', found {self.executor!r}")
-        if self.qp_solver not in QP_SOLVERS:
-            raise PlannerError(f"mpc: qp_solver must be one of {', '.join(QP_SOLVERS)}, found {self.qp_solver!r}")
+        check_settings(self, "mpc")
         if self.qp_solver != "osqp":
             try:
                 import qpsolvers
@@ -354,6 +298,10 @@ class _Counters:
     qp_solved: int = 0
     qp_inaccurate: int = 0
     qp_failures: int = 0
+    qp_non_finite: int = 0
+    non_finite_steps: int = 0
+    qp_errors: int = 0
+    first_qp_error: str = ""
     workspaces: int = 0
     safety_holds: int = 0
     safety_iterations_max: int = 0
@@ -572,7 +520,9 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
 
     move = np.max(np.abs(goal_final - scenario.start) / inst.speeds_rad_s, axis=1)
     bound_s = float(move[scenario.has_target].max()) if np.any(scenario.has_target) else 0.0
-    max_steps = int(np.ceil((settings.max_duration_factor * bound_s + settings.max_duration_extra_s) / h))
+    limit_s = settings.max_duration_factor * bound_s + settings.max_duration_extra_s
+    max_steps = int(np.ceil(limit_s / h))
+    check_step_budget("mpc", max_steps, h, limit_s)
     window = settings.deadlock_window_steps
     # Start schedule (mpc_schedule): each positioner's reference starts after its delay.
     schedule_t0 = time.perf_counter()
@@ -891,11 +841,14 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
                     counters.qp_solves += n_qp
                     counters.qp_solved += int(np.sum(result.status == STATUS_SOLVED))
                     counters.qp_inaccurate += int(np.sum(result.status == STATUS_INACCURATE))
-                    counters.qp_failures += int(np.sum(result.status == STATUS_FAILED))
+                    counters.qp_failures += int(np.sum(~np.isin(result.status, USABLE)))
+                    counters.qp_non_finite += int(np.sum(result.status == STATUS_NON_FINITE))
+                    counters.qp_errors += int(np.sum(result.status == STATUS_ERROR))
+                    counters.first_qp_error = counters.first_qp_error or result.first_error
                     counters.workspaces += result.new_workspaces
                     solve_times.append(result.solve_s)
                     iter_counts.append(result.iterations)
-                    ok = result.status != STATUS_FAILED
+                    ok = np.isin(result.status, USABLE)
                     qplan = q[idx, None, :] + result.z * step_rad
                     qplan = np.clip(qplan, lim[:, 0], lim[:, 1])
                     # Executed first step: within the speed bound and the hard stops.
@@ -912,6 +865,11 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             near = np.all(np.abs(goal - q_next) <= 0.05 * step_rad, axis=1) & np.all(np.abs(goal - q) <= step_rad, axis=1)
             q_next[near] = goal[near]
 
+            # A non-finite step (none is known to arise: every QP solution is checked) holds.
+            bad_step = ~np.isfinite(q_next).all(axis=1)
+            if bad_step.any():
+                q_next[bad_step] = q[bad_step]
+                counters.non_finite_steps += int(bad_step.sum())
             # --- safety layer: exact distances of what will actually be executed.
             q_next, held, iters = safety.apply(q, q_next, c_now, rank, wait_first)
             counters.safety_holds += int(held.sum())
@@ -954,6 +912,9 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         "qp_solved": counters.qp_solved,
         "qp_inaccurate": counters.qp_inaccurate,
         "qp_failures": counters.qp_failures,
+        "qp_non_finite": counters.qp_non_finite,
+        "qp_errors": counters.qp_errors,
+        "non_finite_steps_held": counters.non_finite_steps,
         "qp_workspaces": counters.workspaces,
         "qp_fraction": counters.qp_solves / max(1, n * n_steps),
         # Per QP: OSQP's update + solve (the vectors are assembled for the whole batch before).
@@ -982,6 +943,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         "schedule_swaps": schedule.swaps if schedule is not None else 0,
         "schedule_wall_s": schedule_wall_s,
     }
+    warnings = _run_warnings(scenario, reached, stopped_stalled, times[-1], counters)
     return PlanResult(
         scenario=scenario,
         trajectory=Trajectory(times, joints),
@@ -989,7 +951,23 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         planner="mpc",
         settings=dataclasses.asdict(settings),
         stats=stats,
+        warnings=warnings,
     )
+
+
+def _run_warnings(scenario: Scenario, reached: np.ndarray, stopped_stalled: bool, end_s: float, counters: _Counters) -> tuple[str, ...]:
+    """What the run gave up on, in words (the command line prints them)."""
+    out = []
+    short = int(np.sum(scenario.has_target & ~reached))
+    if short:
+        why = "nothing could progress any more" if stopped_stalled else "the time limit was reached"
+        out.append(f"mpc: {short} of {int(scenario.has_target.sum())} positioners did not reach their targets; "
+                   f"the run stopped at t = {end_s:.2f} s because {why}")
+    if counters.qp_non_finite or counters.qp_errors or counters.non_finite_steps:
+        first = f" (first error: {counters.first_qp_error})" if counters.first_qp_error else ""
+        out.append(f"mpc: {counters.qp_non_finite} QP solve(s) returned a non-finite solution and {counters.qp_errors} raised{first}; "
+                   "each such positioner held for that step")
+    return tuple(out)
 
 
 def _resolve_blocked(

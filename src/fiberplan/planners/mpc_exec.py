@@ -20,11 +20,13 @@ import numpy as np
 
 from fiberplan.errors import PlannerError
 from fiberplan.planners.mpc_qp import (
-    STATUS_FAILED,
+    STATUS_ERROR,
+    USABLE,
     OsqpOptions,
     PositionerQP,
     QpData,
     QpLayout,
+    checked,
     solve_with_qpsolvers,
 )
 
@@ -67,7 +69,8 @@ class QpBatch:
 
 @dataclass
 class QpBatchResult:
-    """Solutions of a batch: status (1 solved, 2 solved inaccurate, 0 failed), plans, timings."""
+    """Solutions of a batch: status (``mpc_qp.STATUS_*``), plans (NaN unless usable), timings,
+    and the first backend exception seen (``type: message``), if any."""
 
     status: np.ndarray
     z: np.ndarray
@@ -75,6 +78,7 @@ class QpBatchResult:
     iterations: np.ndarray
     solve_s: np.ndarray
     new_workspaces: int
+    first_error: str = ""
 
 
 class _Block:
@@ -95,31 +99,37 @@ class _Block:
         iterations = np.zeros(m, dtype=np.int64)
         solve_s = np.zeros(m)
         created = 0
+        first_error = ""
         osqp = self.qp_solver == "osqp"
         if osqp and m:  # the whole batch's vectors in a few numpy operations
             q, lo, hi, ax = self.layout.assemble_batch(
                 batch.z_ref, batch.z_lo, batch.z_hi, batch.v_prev, batch.coef, batch.rhs, batch.active, batch.slack_linear
             )
         for r in range(m):
-            if osqp:
-                key = int(batch.index[r])
-                workspace = self.workspaces.get(key)
-                if workspace is None:
-                    workspace = PositionerQP(self.layout, self.options)
-                    self.workspaces[key] = workspace
-                    created += 1
-                t0 = time.perf_counter()
-                st, x, it = workspace.solve_assembled(q[r], lo[r], hi[r], ax[r])
-            else:
-                t0 = time.perf_counter()
-                st, x, it = solve_with_qpsolvers(self.layout, batch.data(r), self.qp_solver)
+            t0 = time.perf_counter()
+            # A backend that raises fails this one solve: the positioner holds, the plan goes on.
+            try:
+                if osqp:
+                    key = int(batch.index[r])
+                    workspace = self.workspaces.get(key)
+                    if workspace is None:
+                        workspace = PositionerQP(self.layout, self.options)
+                        self.workspaces[key] = workspace
+                        created += 1
+                    t0 = time.perf_counter()
+                    st, x, it = checked(*workspace.solve_assembled(q[r], lo[r], hi[r], ax[r]))
+                else:
+                    st, x, it = checked(*solve_with_qpsolvers(self.layout, batch.data(r), self.qp_solver))
+            except Exception as e:  # any backend failure is one failed solve
+                st, x, it = STATUS_ERROR, None, 0
+                first_error = first_error or f"{type(e).__name__}: {e}"
             dt = time.perf_counter() - t0
             status[r], iterations[r], solve_s[r] = st, it, dt
-            if x is not None and st != STATUS_FAILED:
+            if x is not None and st in USABLE:
                 zz, _, ss = self.layout.split(x)
                 z[r] = zz
                 slack_max[r] = float(ss.max(initial=0.0))
-        return QpBatchResult(status, z, slack_max, iterations, solve_s, created)
+        return QpBatchResult(status, z, slack_max, iterations, solve_s, created, first_error)
 
 
 def _merge(parts: list[tuple[np.ndarray, QpBatchResult]], m: int, H: int) -> QpBatchResult:
@@ -132,6 +142,7 @@ def _merge(parts: list[tuple[np.ndarray, QpBatchResult]], m: int, H: int) -> QpB
         new_workspaces=0,
     )
     for rows, res in parts:
+        out.first_error = out.first_error or res.first_error
         out.status[rows] = res.status
         out.z[rows] = res.z
         out.slack_max[rows] = res.slack_max

@@ -38,6 +38,12 @@ from fiberplan.errors import PlannerError
 STATUS_SOLVED = 1
 STATUS_INACCURATE = 2
 STATUS_FAILED = 0
+STATUS_NON_FINITE = 3
+"""The backend reported a solution with a NaN or inf entry (treated as a failure)."""
+STATUS_ERROR = 4
+"""The backend raised an exception (treated as a failure; the plan goes on)."""
+USABLE = (STATUS_SOLVED, STATUS_INACCURATE)
+"""Statuses whose solution is executed."""
 
 _INF = np.inf
 
@@ -310,11 +316,17 @@ class PositionerQP:
             info = ext.info
             status_val, iters = int(info.status_val), int(info.iter)
             x = np.array(ext.solution.x) if status_val in (STATUS_SOLVED, STATUS_INACCURATE) else None
-        if status_val == STATUS_SOLVED:
-            return STATUS_SOLVED, np.asarray(x), iters
-        if status_val == STATUS_INACCURATE and x is not None and np.all(np.isfinite(x)):
-            return STATUS_INACCURATE, np.asarray(x), iters
+        if status_val in (STATUS_SOLVED, STATUS_INACCURATE) and x is not None:
+            return checked(status_val, np.asarray(x), iters)
         return STATUS_FAILED, None, iters
+
+
+def checked(status: int, x: np.ndarray | None, iterations: int) -> tuple[int, np.ndarray | None, int]:
+    """A backend's answer with every entry checked: a non-finite solution is a failure, whatever
+    status the backend gave (``STATUS_NON_FINITE``, no solution)."""
+    if status in USABLE and (x is None or not np.all(np.isfinite(x))):
+        return STATUS_NON_FINITE, None, iterations
+    return status, x, iterations
 
 
 def solve_with_qpsolvers(layout: QpLayout, data: QpData, solver: str) -> tuple[int, np.ndarray | None, int]:
@@ -330,13 +342,8 @@ def solve_with_qpsolvers(layout: QpLayout, data: QpData, solver: str) -> tuple[i
     dn = ~eq & np.isfinite(lo)
     G = np.vstack([A[up], -A[dn]])
     h = np.concatenate([hi[up], -lo[dn]])
-    try:
-        x = qpsolvers.solve_qp(
-            sp.csc_matrix(P), q, sp.csc_matrix(G), h, sp.csc_matrix(A[eq]), lo[eq], solver=solver
-        )
-    except Exception:  # a backend error is a failed solve: the positioner brakes
+    x = qpsolvers.solve_qp(sp.csc_matrix(P), q, sp.csc_matrix(G), h, sp.csc_matrix(A[eq]), lo[eq], solver=solver)
+    if x is None:
         return STATUS_FAILED, None, 0
-    if x is None or not np.all(np.isfinite(x)):
-        return STATUS_FAILED, None, 0
-    return STATUS_SOLVED, np.asarray(x), 0
+    return checked(STATUS_SOLVED, np.asarray(x), 0)
 

@@ -14,24 +14,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fiberplan.errors import PlannerError
 from fiberplan.instrument import Instrument
 from fiberplan.kinematics import move_times
 from fiberplan.planners import ProgressCallback
 from fiberplan.scenario import Scenario
+from fiberplan.settings import check_settings, check_step_budget, setting
 from fiberplan.trajectory import PlanResult, Trajectory
 
 
 @dataclass(frozen=True)
 class StraightSettings:
-    """Settings of the ``straight`` planner.
+    """Settings of the ``straight`` planner (declared with :func:`fiberplan.settings.setting`)."""
 
-    Attributes:
-        dt_s: sample spacing of the output trajectory (s); default the instrument's
-            control period (``Instrument.control_dt_s``).
-    """
-
-    dt_s: float = 0.01
+    dt_s: float = setting(0.01, "sample spacing of the output trajectory (instrument default: its control period)", unit="s",
+                          low=1e-4, high=10.0, group="run")
 
     @classmethod
     def for_instrument(cls, instrument: Instrument) -> StraightSettings:
@@ -39,8 +35,7 @@ class StraightSettings:
         return cls(dt_s=instrument.control_dt_s)
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.dt_s) and self.dt_s > 0):
-            raise PlannerError(f"straight: dt_s must be > 0, found {self.dt_s}")
+        check_settings(self, "straight")
 
 
 def plan_straight(scenario: Scenario, settings: StraightSettings, progress: ProgressCallback | None = None) -> PlanResult:
@@ -49,6 +44,7 @@ def plan_straight(scenario: Scenario, settings: StraightSettings, progress: Prog
     delta = scenario.target - scenario.start
     duration = float(move_times(inst, scenario.start, scenario.target).max())
     n_steps = max(1, int(np.ceil(duration / settings.dt_s - 1e-9)))
+    check_step_budget("straight", n_steps, settings.dt_s, duration)
     times = np.minimum(np.arange(n_steps + 1) * settings.dt_s, duration) if duration > 0 else np.array([0.0, settings.dt_s])
     if duration > 0:
         times[-1] = duration
