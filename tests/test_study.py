@@ -29,8 +29,25 @@ planner = ["straight"]
 seeds = {seeds}
 
 [settings.straight]
-dt_s = [0.01, 0.02, -1.0]
+dt_s = [0.01, 0.02, 0.05]
 """
+
+INJECTED = "injected failure for dt_s = 0.05"
+
+
+@pytest.fixture
+def failing_cell(monkeypatch):
+    """``straight`` raises on the dt_s = 0.05 cells (a deterministic run error; forked workers see it)."""
+    import fiberplan.planners.straight as straight_module
+
+    original = straight_module.plan_straight
+
+    def plan_straight(scenario, settings, progress=None):
+        if settings.dt_s == 0.05:
+            raise RuntimeError(INJECTED)
+        return original(scenario, settings, progress)
+
+    monkeypatch.setattr(straight_module, "plan_straight", plan_straight)
 
 
 def write_spec(folder: Path, seeds: int = 3) -> Path:
@@ -55,17 +72,35 @@ def test_grid_expansion_and_errors(tmp_path):
     bad.write_text(SPEC.format(seeds=2).replace("dt_s = ", "speed = "))
     with pytest.raises(StudyError, match="has no setting 'speed'"):
         load_study(bad)
+    # A value outside its range is refused before any run, naming planner, instrument and range.
+    bad.write_text(SPEC.format(seeds=2).replace("0.05]", "-1.0]"))
+    with pytest.raises(StudyError, match=r"\[settings.straight\] on desi: straight: setting 'dt_s' = -1.0 s is outside"):
+        load_study(bad)
+    # Misspelled keys anywhere name the closest valid key; nothing is ignored.
+    for old, new, match in (
+        ("seeds = ", "seed = ", r"\[grid\]: unknown key 'seed'; did you mean 'seeds'\?"),
+        ("per_positioner", "per_positoner", "unknown key 'per_positoner'; did you mean 'per_positioner'"),
+        ("[settings.straight]", "[setting.straight]", "unknown key 'setting'; did you mean 'settings'"),
+        ("[settings.straight]", "[settings.dnf]", r"\[settings.dnf\] names a planner that is not in \[grid\]"),
+        ("n_positioners = [7, 19]", "n_positioners = [7, 0]", "n_positioners must be integers from 1"),
+    ):
+        bad.write_text(SPEC.format(seeds=2).replace(old, new))
+        with pytest.raises(StudyError, match=match):
+            load_study(bad)
+    bad.write_text(SPEC.format(seeds=2) + "\n[scenario]\ncluster_fraction = [0.5, 1.5]\n")
+    with pytest.raises(StudyError, match=r"cluster_fraction must be a number in \[0, 1\], found 1.5"):
+        load_study(bad)
     with pytest.raises(StudyError, match="does not exist"):
         load_study(tmp_path / "none.toml")
 
 
-def test_local_sweep_records_failures_and_skips_finished(tmp_path):
+def test_local_sweep_records_failures_and_skips_finished(tmp_path, failing_cell):
     spec = load_study(write_spec(tmp_path, seeds=2))
     assert run_study(spec, workers=2, progress=False) == 12
     table = pd.read_parquet(spec.out)
     failed = table[table["status"] == "error"]
-    assert len(failed) == 4 and (failed["setting.dt_s"] == -1.0).all()
-    assert failed["error"].str.contains("'dt_s' = -1.0 s is outside its valid range").all()
+    assert len(failed) == 4 and (failed["setting.dt_s"] == 0.05).all()
+    assert failed["error"].str.contains(INJECTED).all()
     ok = table[table["status"] == "ok"]
     assert (ok["success_rate"] == 1.0).all() and ok["collisions"].notna().all()
     positioners = pd.read_parquet(spec.positioner_out)
@@ -143,15 +178,18 @@ def test_rates_group_and_pool_positioners():
     assert table.loc["a", "deadlock_lo"] < 0.1 < table.loc["a", "deadlock_hi"]
 
 
-def test_dead_worker_is_replaced_and_its_run_recorded(tmp_path, monkeypatch):
+def test_dead_worker_is_retried_then_lost_and_run_again_on_resume(tmp_path, monkeypatch):
     import fiberplan.study as study_module
 
     spec = load_study(write_spec(tmp_path, seeds=2))
     doomed = spec.tasks[1].key
     original = study_module.run_task
+    attempts = tmp_path / "attempts"
 
     def dies_on_one_task(task, per_positioner=False):
-        if task.key == doomed:
+        if task.key == doomed and not (tmp_path / "healed").exists():
+            with attempts.open("a") as f:
+                f.write("x")
             os._exit(1)  # the worker process dies, as under the OOM killer
         return original(task, per_positioner)
 
@@ -160,7 +198,48 @@ def test_dead_worker_is_replaced_and_its_run_recorded(tmp_path, monkeypatch):
     monkeypatch.setattr(study_module, "run_task", dies_on_one_task)
     assert run_study(spec, workers=2, progress=False) == len(spec.tasks)
     table = pd.read_parquet(spec.out).set_index("task")
-    assert table.loc[doomed, "status"] == "error"
-    assert "worker process died on this run" in table.loc[doomed, "error"]
-    others = table.drop(index=doomed)
-    assert (others.loc[others["setting.dt_s"] > 0, "status"] == "ok").all()
+    assert table.loc[doomed, "status"] == "lost"
+    assert "worker process died on this run (2 attempt(s) alone)" in table.loc[doomed, "error"]
+    assert len(attempts.read_text()) == 1 + spec.retries  # once in the pool, then retried alone (bounded)
+    assert (table.drop(index=doomed)["status"] == "ok").all()
+    assert study_module.lost_tasks(spec) == {doomed} and doomed not in finished_tasks(spec)
+    # The machinery recovers: the resumed sweep runs the lost run again, and only it.
+    (tmp_path / "healed").touch()
+    before = {p.name: p.stat().st_mtime_ns for p in spec.parts_dir.glob("*.parquet")}
+    assert run_study(spec, workers=2, progress=False) == len(spec.tasks)
+    table = pd.read_parquet(spec.out).set_index("task")
+    assert table.loc[doomed, "status"] == "ok" and not study_module.lost_tasks(spec)
+    after = {p.name: p.stat().st_mtime_ns for p in spec.parts_dir.glob("*.parquet")}
+    assert {k for k in before if k in after and before[k] != after[k]} == set()
+
+
+def test_sweep_without_live_workers_stops_and_keeps_finished_rows(tmp_path):
+    import threading
+
+    from dask.distributed import LocalCluster
+
+    from fiberplan.errors import InfrastructureError
+
+    spec_path = write_spec(tmp_path, seeds=40)
+    spec_path.write_text(spec_path.read_text().replace('per_positioner = true', 'per_positioner = false\nno_worker_timeout_s = 2'))
+    spec = load_study(spec_path)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None) as cluster:
+
+        def retire_when_some_are_done():
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and len(finished_tasks(spec)) < 3:
+                time.sleep(0.05)
+            cluster.scale(0)
+
+        killer = threading.Thread(target=retire_when_some_are_done, daemon=True)
+        killer.start()
+        t0 = time.monotonic()
+        with pytest.raises(InfrastructureError, match="no live Dask worker .* for 2 s"):
+            run_study(spec, scheduler=cluster.scheduler_address, progress=False)
+        killer.join()
+        assert time.monotonic() - t0 < 90
+    kept = pd.read_parquet(spec.out)
+    ok = kept[kept["status"] == "ok"]
+    # Finished rows are kept; runs whose results died with the worker are "lost", to run again.
+    assert 3 <= len(ok) and len(kept) < len(spec.tasks) and set(kept["status"]) <= {"ok", "lost"}
+    assert finished_tasks(spec) == set(ok["task"])

@@ -64,13 +64,13 @@ def check_output_path(
     final = Path(path)
     if str(path) == "":
         raise OutputError(f"{what}: empty path; give a file name")
+    _refuse_non_regular(final, what)
     if suffixes is not None:
         allowed = tuple(suffixes)
         if final.suffix.lower() not in allowed:
             raise OutputError(
                 f"{what} {str(final)!r}: unsupported extension {final.suffix or '(none)'!r}; use one of {', '.join(allowed)}"
             )
-    _refuse_non_regular(final, what)
     for source in inputs:
         if source is not None and Path(source).exists() and _same_file(final, Path(source)):
             raise OutputError(f"{what} {str(final)!r} is also an input of this command; write the output to another path")
@@ -93,7 +93,7 @@ def _refuse_non_regular(final: Path, what: str) -> None:
     """Refuse a path that exists and is not a regular file (a symlink included: never followed)."""
     try:
         info = os.lstat(final)
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # the folder check names a file in the way
         return
     except OSError as e:
         raise OutputError(f"{what} {str(final)!r}: cannot be checked ({e.strerror or e})") from e

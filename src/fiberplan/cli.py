@@ -1,14 +1,18 @@
 """The ``fiberplan`` command line: plan, verify, show, animate, scenario, instruments, planners.
 
-Exit status: 0 success; 1 ``verify`` found a collision or limit violation (or ``plan
---strict`` did); 2 bad input (unknown preset, malformed file, invalid scenario, bad
-setting...), reported in one line without a traceback.
+Exit status: 0 success; 1 ``verify`` found a collision, limit violation, non-finite sample or
+file inconsistency (or ``plan --strict`` did); 2 bad input (unknown preset, malformed file,
+invalid scenario, bad setting, unsafe output path...), reported in one line without a
+traceback and before any work starts; 3 a sweep lost every worker (finished runs are kept);
+70 an internal error (a bug: one line; ``FIBERPLAN_DEBUG=1`` shows the traceback); 130
+interrupted.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -16,9 +20,22 @@ from typing import Any
 
 import click
 
-from fiberplan.errors import FiberplanError
+from fiberplan._atomic import check_output_path
+from fiberplan.errors import FiberplanError, InfrastructureError
 
 DEFAULT_PLANNER = "mpc"
+MAX_SEED = 2**63 - 1
+EXIT_INFRASTRUCTURE = 3
+EXIT_INTERNAL = 70
+
+HDF5_SUFFIXES = (".h5", ".hdf5")
+IMAGE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".eps", ".ps")
+ANIMATION_SUFFIXES = (".gif", ".mp4")
+JSON_SUFFIXES = (".json",)
+PARQUET_SUFFIXES = (".parquet",)
+
+SEED = click.IntRange(0, MAX_SEED)
+POSITIONERS = click.IntRange(1, 50_000)
 
 
 def _json_ready(value: Any) -> Any:
@@ -30,6 +47,27 @@ def _json_ready(value: Any) -> Any:
     if isinstance(value, list):
         return [_json_ready(v) for v in value]
     return value
+
+
+def _explicit(ctx: click.Context, *names: str) -> list[str]:
+    """Options the user gave on the command line (not defaults), as ``--option`` names."""
+    from click.core import ParameterSource
+
+    return [f"--{n.replace('_', '-')}" for n in names if ctx.get_parameter_source(n) == ParameterSource.COMMANDLINE]
+
+
+def _instrument_arg(text: str) -> tuple[Any, str | None, str]:
+    """An ``--instrument`` value: the instrument, its preset name (or None) and what was used."""
+    from fiberplan.instrument import instrument_source, load_instrument
+
+    kind, where = instrument_source(text)
+    inst = load_instrument(text)
+    return inst, (where if kind == "preset" else None), (f"preset {where}" if kind == "preset" else f"file {where}")
+
+
+def _warn(messages: Sequence[str]) -> None:
+    for message in messages:
+        click.echo(f"warning: {message}", err=True)
 
 
 def _print_table(summary: dict[str, Any], keys: Sequence[str]) -> None:
@@ -57,8 +95,8 @@ def _parse_settings(pairs: Sequence[str]) -> dict[str, Any]:
 
 
 _SUMMARY_KEYS = (
-    "planner", "instrument", "scenario_kind", "n_positioners", "seed", "reached", "success_rate", "deadlocked",
-    "failed", "collisions", "limit_violations", "makespan_s", "lower_bound_s", "makespan_over_bound", "plan_wall_s",
+    "planner", "instrument", "scenario_kind", "n_positioners", "seed", "targets", "reached", "success_rate", "held",
+    "deadlocked", "failed", "collisions", "limit_violations", "makespan_s", "lower_bound_s", "makespan_over_bound", "plan_wall_s",
 )
 
 
@@ -68,37 +106,65 @@ def cli() -> None:
     """Plan collision-free motions for theta-phi fiber positioners, verify and look at them."""
 
 
-def _build_scenario(scenario_file: Path | None, instrument: str, positioners: int, radius_mm: float | None, kind: str, seed: int) -> Any:
+def _build_scenario(
+    ctx: click.Context, scenario_file: Path | None, instrument: str, positioners: int, radius_mm: float | None, kind: str, seed: int,
+) -> tuple[Any, str]:
+    """The scenario to plan and a line saying where its instrument came from.
+
+    With ``--scenario``, the generator options cannot apply and are refused when given;
+    ``--instrument`` then replaces the file's instrument (said in the output).
+    """
     if scenario_file is not None:
         from fiberplan.scenario import load_scenario
 
-        return load_scenario(scenario_file)
+        ignored = _explicit(ctx, "positioners", "radius_mm", "scenario_kind", "seed")
+        if ignored:
+            raise click.UsageError(f"{', '.join(ignored)} cannot be used with --scenario (the file gives the positioners and targets)")
+        sc = load_scenario(scenario_file)
+        if _explicit(ctx, "instrument"):
+            inst, preset, used = _instrument_arg(instrument)
+            return sc.with_instrument(inst, preset), f"{used} (replaces the scenario file's {sc.instrument.name!r})"
+        return sc, f"from the scenario file ({'preset ' + sc.instrument_preset if sc.instrument_preset else 'embedded table'})"
     from fiberplan.generate import make_scenario
 
-    return make_scenario(instrument, positioners, kind, seed, radius_mm=radius_mm)
+    inst, preset, used = _instrument_arg(instrument)
+    return make_scenario(inst, positioners, kind, seed, radius_mm=radius_mm, instrument_preset=preset), used
 
 
 @cli.command()
 @click.option("--instrument", default="desi", show_default=True, help="Preset name (desi, moons, sdss) or instrument .toml file.")
-@click.option("--positioners", "-n", default=500, show_default=True, type=int, help="Positioners in the hexagonal patch.")
-@click.option("--radius-mm", type=float, default=None, help="Lay out a full focal plane of this radius instead of a patch.")
+@click.option("--positioners", "-n", default=500, show_default=True, type=POSITIONERS, help="Positioners in the hexagonal patch.")
+@click.option("--radius-mm", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Lay out a full focal plane of this radius instead of a patch.")
 @click.option("--scenario-kind", default="random", show_default=True, help="random, unfold, fold or clustered.")
-@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the scenario generator.")
+@click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the scenario generator.")
 @click.option("--scenario", "scenario_file", type=click.Path(path_type=Path), default=None, help="Plan this scenario file instead.")
 @click.option("--planner", default=DEFAULT_PLANNER, show_default=True, help="Planner name (see `fiberplan planners`).")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="Planner setting override (repeatable).")
-@click.option("--out", type=click.Path(path_type=Path), default=None, help="Write the trajectory to this HDF5 file.")
-@click.option("--picture", type=click.Path(path_type=Path), default=None, help="Write a PNG snapshot (first collision, else the end).")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="Write the trajectory to this HDF5 file (.h5).")
+@click.option("--picture", type=click.Path(path_type=Path), default=None, help="Write a snapshot (first collision, else the end).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the table.")
 @click.option("--no-verify", is_flag=True, help="Skip the independent verifier.")
 @click.option("--strict", is_flag=True, help="Exit with status 1 if the verifier finds a collision or violation.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+@click.pass_context
 def plan(
-    instrument: str, positioners: int, radius_mm: float | None, scenario_kind: str, seed: int, scenario_file: Path | None,
-    planner: str, settings: tuple[str, ...], out: Path | None, picture: Path | None, as_json: bool, no_verify: bool,
-    strict: bool, quiet: bool,
+    ctx: click.Context, instrument: str, positioners: int, radius_mm: float | None, scenario_kind: str, seed: int,
+    scenario_file: Path | None, planner: str, settings: tuple[str, ...], out: Path | None, picture: Path | None, as_json: bool,
+    no_verify: bool, strict: bool, quiet: bool,
 ) -> None:
     """Plan a generated or given scenario, verify it, and print a summary."""
+    # Everything that can be refused is refused before any planning.
+    if out is not None:
+        check_output_path(out, what="--out", suffixes=HDF5_SUFFIXES, inputs=[scenario_file])
+    if picture is not None:
+        check_output_path(picture, what="--picture", suffixes=IMAGE_SUFFIXES, inputs=[scenario_file, out])
+        if out is not None and os.path.abspath(out) == os.path.abspath(picture):
+            raise click.UsageError("--out and --picture name the same file")
+    if scenario_file is not None and not scenario_file.is_file():
+        from fiberplan.errors import ScenarioError
+
+        raise ScenarioError(f"scenario file {str(scenario_file)!r} {'is not a regular file' if scenario_file.exists() else 'does not exist'}")
     from tqdm import tqdm
 
     from fiberplan.metrics import summarize
@@ -108,7 +174,10 @@ def plan(
     from fiberplan.verify import verify as run_verify
 
     overrides = _parse_settings(settings)
-    scenario = _build_scenario(scenario_file, instrument, positioners, radius_mm, scenario_kind, seed)
+    from fiberplan.planners import settings_class
+
+    settings_class(planner)  # an unknown planner is refused before the scenario is built
+    scenario, instrument_used = _build_scenario(ctx, scenario_file, instrument, positioners, radius_mm, scenario_kind, seed)
     planner_settings = make_settings(planner, scenario, overrides)
     bar = tqdm(total=1000, desc=f"{planner} x {scenario.n_positioners}", unit="‰", disable=True if quiet else None, file=sys.stderr, leave=False)
 
@@ -121,6 +190,7 @@ def plan(
         bar.close()
     report = None if no_verify else run_verify(scenario, result.trajectory)
     summary = summarize(result, report)
+    summary["instrument_source"] = instrument_used
     if report is None:
         summary["collisions"] = None
     if out is not None:
@@ -132,11 +202,13 @@ def plan(
         times = [c.t_first_s for c in report.collisions] if report is not None else []
         save_snapshot(result, picture, default_snapshot_time(result, times))
         summary["picture"] = str(picture)
+    summary["warnings"] = list(result.warnings)
     if as_json:
         click.echo(json.dumps(_json_ready(summary)))
     else:
         click.echo(f"fiberplan plan: {scenario.name or scenario.kind}")
-        _print_table(summary, _SUMMARY_KEYS + tuple(k for k in ("out", "picture") if k in summary))
+        _print_table(summary, (*_SUMMARY_KEYS, "instrument_source", *(k for k in ("out", "picture") if k in summary)))
+    _warn(result.warnings)
     if report is not None and not report.ok:
         click.echo(
             f"warning: the verifier found {report.n_collisions} colliding pair(s) and "
@@ -150,25 +222,41 @@ def plan(
 @cli.command()
 @click.argument("file", type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-@click.option("--max-events", default=20, show_default=True, help="Collision events to list in the table output.")
-def verify(file: Path, as_json: bool, max_events: int) -> None:
-    """Check a trajectory file: hard stops, speeds, collisions at and between samples.
+@click.option("--max-events", default=20, show_default=True, type=click.IntRange(min=0), help="Events of each kind to list in the table.")
+@click.option("--instrument", default=None, help="Check against this preset or instrument .toml file instead of the file's geometry.")
+def verify(file: Path, as_json: bool, max_events: int, instrument: str | None) -> None:
+    """Check a trajectory file: finite samples, hard stops, speeds, collisions at and between samples,
+    and the file against itself.
 
     Exits with status 1 when anything is violated.
     """
     from fiberplan.metrics import summarize
-    from fiberplan.trajectory import load_result
+    from fiberplan.trajectory import read_run
+    from fiberplan.verify import check_run_file
     from fiberplan.verify import verify as run_verify
 
-    result = load_result(file)
-    report = run_verify(result.scenario, result.trajectory)
-    summary = summarize(result, report)
+    geometry = _instrument_arg(instrument) if instrument is not None else None
+    run = read_run(file)
+    report = run_verify(run.scenario, run.trajectory, instrument=None if geometry is None else geometry[0])
+    mismatches, warnings = check_run_file(run)
+    report.file_mismatches.extend(mismatches)
+    if geometry is None:
+        report.warnings.extend(warnings)
+    summary = summarize(run, report)
+    summary["geometry"] = geometry[2] if geometry is not None else "the file's"
     if as_json:
         payload = summary | {"report": report.to_dict()}
         click.echo(json.dumps(_json_ready(payload)))
     else:
         click.echo(f"fiberplan verify: {file}")
-        _print_table(summary, (*_SUMMARY_KEYS, "verified_ok", "min_clearance_mm"))
+        _print_table(summary, (*_SUMMARY_KEYS, "geometry", "verified_ok", "min_clearance_mm"))
+        for run_nf in report.non_finite[:max_events]:
+            click.echo(
+                f"  non-finite joint angles: positioner {run_nf.positioner_id} from t = {run_nf.t_first_s:.3f} s to "
+                f"t = {run_nf.t_last_s:.3f} s ({run_nf.n_samples} sample(s))"
+            )
+        if len(report.non_finite) > max_events:
+            click.echo(f"  ... and {len(report.non_finite) - max_events} more runs of non-finite samples (use --json for all)")
         for event in report.collisions[:max_events]:
             click.echo(
                 f"  collision: positioners {event.id_i} ({event.capsule_i}) and {event.id_j} ({event.capsule_j}) "
@@ -181,6 +269,9 @@ def verify(file: Path, as_json: bool, max_events: int) -> None:
             click.echo(f"  {v.kind} violation: positioner {v.positioner_id} {v.joint} at t = {v.t_s:.3f} s: {v.value:.5g} vs limit {v.limit:.5g}")
         if report.start_mismatch_ids:
             click.echo(f"  trajectory does not start at the scenario start for positioners {report.start_mismatch_ids[:10]}")
+        for mismatch in report.file_mismatches:
+            click.echo(f"  file inconsistency: {mismatch}")
+    _warn(report.warnings)
     if not report.ok:
         sys.exit(1)
 
@@ -188,9 +279,10 @@ def verify(file: Path, as_json: bool, max_events: int) -> None:
 @cli.command()
 @click.argument("file", type=click.Path(path_type=Path))
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="PNG (or PDF/SVG) to write.")
-@click.option("--time", "t", type=float, default=None, help="Instant to draw (s); default the first collision, else the end.")
+@click.option("--time", "t", type=click.FloatRange(min=0.0), default=None, help="Instant to draw (s); default the first collision, else the end.")
 def show(file: Path, out: Path, t: float | None) -> None:
     """Draw a snapshot of a run: arms, capsules, targets, collisions in red."""
+    check_output_path(out, what="--out", suffixes=IMAGE_SUFFIXES, inputs=[file])
     from fiberplan.plotting import default_snapshot_time, save_snapshot
     from fiberplan.trajectory import load_result
     from fiberplan.verify import verify as run_verify
@@ -206,10 +298,11 @@ def show(file: Path, out: Path, t: float | None) -> None:
 @cli.command()
 @click.argument("file", type=click.Path(path_type=Path))
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="GIF (or MP4 with ffmpeg) to write.")
-@click.option("--fps", default=20, show_default=True)
-@click.option("--frames", default=120, show_default=True, help="Largest number of frames.")
+@click.option("--fps", default=20, show_default=True, type=click.IntRange(1, 240), help="Frames per second.")
+@click.option("--frames", default=120, show_default=True, type=click.IntRange(2, 10_000), help="Largest number of frames.")
 def animate(file: Path, out: Path, fps: int, frames: int) -> None:
     """Animate a run."""
+    check_output_path(out, what="--out", suffixes=ANIMATION_SUFFIXES, inputs=[file])
     from fiberplan.plotting import save_animation
     from fiberplan.trajectory import load_result
 
@@ -219,19 +312,21 @@ def animate(file: Path, out: Path, fps: int, frames: int) -> None:
 
 
 @cli.command()
-@click.option("--instrument", default="desi", show_default=True)
-@click.option("--positioners", "-n", default=500, show_default=True, type=int)
-@click.option("--radius-mm", type=float, default=None)
+@click.option("--instrument", default="desi", show_default=True, help="Preset name (desi, moons, sdss) or instrument .toml file.")
+@click.option("--positioners", "-n", default=500, show_default=True, type=POSITIONERS)
+@click.option("--radius-mm", type=click.FloatRange(min=0, min_open=True), default=None)
 @click.option("--kind", default="random", show_default=True, help="random, unfold, fold or clustered.")
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=SEED)
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Scenario JSON file to write.")
 def scenario(instrument: str, positioners: int, radius_mm: float | None, kind: str, seed: int, out: Path) -> None:
     """Generate a seeded scenario and write it as JSON."""
+    check_output_path(out, what="--out", suffixes=JSON_SUFFIXES)
     from fiberplan.generate import make_scenario
 
-    sc = make_scenario(instrument, positioners, kind, seed, radius_mm=radius_mm)
+    inst, preset, used = _instrument_arg(instrument)
+    sc = make_scenario(inst, positioners, kind, seed, radius_mm=radius_mm, instrument_preset=preset)
     sc.save(out)
-    click.echo(f"wrote {out} ({sc.n_positioners} positioners, {sc.kind}, seed {sc.seed})")
+    click.echo(f"wrote {out} ({sc.n_positioners} positioners, {sc.kind}, seed {sc.seed}, instrument {used})")
 
 
 @cli.command()
@@ -244,17 +339,39 @@ def instruments(name: str | None) -> None:
         for preset in preset_names():
             click.echo(f"{preset:8s} {load_instrument(preset).description}")
         return
-    inst = load_instrument(name)
+    inst, _, used = _instrument_arg(name)
+    click.echo(f"# {used}", err=True)
     click.echo(json.dumps(inst.to_dict(), indent=2))
 
 
 @cli.command()
-def planners() -> None:
-    """List the registered planners."""
-    from fiberplan.planners import planner_names
+@click.option("--settings", "settings_of", default=None, metavar="PLANNER", help="List every setting of this planner.")
+@click.option("--instrument", default="desi", show_default=True, help="Instrument whose defaults --settings shows.")
+@click.option("--json", "as_json", is_flag=True, help="With --settings: one JSON list.")
+def planners(settings_of: str | None, instrument: str, as_json: bool) -> None:
+    """List the registered planners, or one planner's settings with their values for an instrument."""
+    from fiberplan.planners import make_settings, planner_names
+    from fiberplan.settings import describe_settings
 
-    for name in planner_names():
-        click.echo(name)
+    if settings_of is None:
+        for name in planner_names():
+            click.echo(name)
+        return
+    inst, _, used = _instrument_arg(instrument)
+    rows = describe_settings(make_settings(settings_of, inst))
+    if as_json:
+        click.echo(json.dumps(_json_ready(rows)))
+        return
+    click.echo(f"{settings_of} settings for instrument {inst.name} ({used}); change with --set KEY=VALUE")
+    group = None
+    width = max(len(r["name"]) for r in rows)
+    for row in sorted(rows, key=lambda r: r["group"]):
+        if row["group"] != group:
+            group = row["group"]
+            click.echo(f"[{group}]")
+        value = json.dumps(_json_ready(row["value"]))
+        unit = f" {row['unit']}" if row["unit"] else ""
+        click.echo(f"  {row['name']:<{width}}  {value}{unit}  ({row['range']}): {row['doc']}")
 
 
 @cli.command()
@@ -270,14 +387,18 @@ def sweep(spec: Path, scheduler: str | None, workers: int | None, quiet: bool) -
     from fiberplan.study import finished_tasks, load_study, run_study
 
     study = load_study(spec)
+    check_output_path(study.out, what=f"study {str(spec)!r}: out", suffixes=PARQUET_SUFFIXES, inputs=[spec])
     already = len(finished_tasks(study))
     click.echo(f"study {study.name}: {len(study.tasks)} runs, {already} already done -> {study.out}", err=True)
     rows = run_study(study, workers=workers, scheduler=scheduler, progress=not quiet)
     import pandas as pd
 
     table = pd.read_parquet(study.out)
-    errors = int((table["status"] != "ok").sum())
-    click.echo(f"wrote {study.out}: {rows} runs ({errors} with errors)")
+    errors = int((table["status"] == "error").sum())
+    lost = int((table["status"] == "lost").sum())
+    click.echo(f"wrote {study.out}: {rows} runs ({errors} with errors, {lost} lost to the machinery)")
+    if lost:
+        raise InfrastructureError(f"{lost} run(s) were lost to dead workers after retries; run the same command again to retry them")
 
 
 @cli.command("study-plot")
@@ -289,6 +410,7 @@ def sweep(spec: Path, scheduler: str | None, workers: int | None, quiet: bool) -
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="Image to write.")
 def study_plot(results: Path, kind: str, x: str, by: str, rate: str, out: Path) -> None:
     """Plot a study table: rates with error bars, plan time vs N, or makespan / lower bound."""
+    check_output_path(out, what="--out", suffixes=IMAGE_SUFFIXES, inputs=[results])
     from fiberplan.plotting import plot_makespan_ratio, plot_rates, plot_scaling, save_figure
     from fiberplan.study import StudyError, load_results, rates
 
@@ -308,11 +430,11 @@ def study_plot(results: Path, kind: str, x: str, by: str, rate: str, out: Path) 
 
 @cli.command()
 @click.option("--instrument", default="desi", show_default=True, help="Preset name (desi, moons, sdss) or instrument .toml file.")
-@click.option("--positioners", "-n", default=7, show_default=True, type=int, help="Positioners in the hexagonal group.")
+@click.option("--positioners", "-n", default=7, show_default=True, type=POSITIONERS, help="Positioners in the hexagonal group.")
 @click.option(
     "--scenario-kind", default="hard", show_default=True, help="hard (clustered starts and targets), random, unfold, fold or clustered."
 )
-@click.option("--seeds", default=5, show_default=True, type=int, help="Run seeds 0..K-1.")
+@click.option("--seeds", default=5, show_default=True, type=click.IntRange(1, 100_000), help="Run seeds 0..K-1.")
 @click.option("--seed-list", default=None, help="Comma-separated seeds (instead of --seeds).")
 @click.option("--planners", "planner_list", default="central,mpc,dnf", show_default=True, help="Comma-separated planner names.")
 @click.option("--set", "settings", multiple=True, metavar="PLANNER.KEY=VALUE", help="Setting override of one planner (repeatable).")
@@ -325,6 +447,7 @@ def compare(
     settings: tuple[str, ...], energy_gap: bool, out: Path, as_json: bool, quiet: bool,
 ) -> None:
     """Run several planners on the same seeded scenarios; verify each; one row per planner x scenario."""
+    check_output_path(out, what="--out", suffixes=PARQUET_SUFFIXES)
     from tqdm import tqdm
 
     from fiberplan.compare import format_table, run_compare, write_parquet
@@ -334,9 +457,10 @@ def compare(
             seed_values = [int(s) for s in seed_list.split(",") if s.strip()]
         except ValueError as e:
             raise click.BadParameter(f"expected comma-separated integers, found {seed_list!r}", param_hint="--seed-list") from e
+        bad = [v for v in seed_values if not 0 <= v <= MAX_SEED]
+        if bad:
+            raise click.BadParameter(f"seeds must lie in [0, 2**63 - 1], found {bad[0]}", param_hint="--seed-list")
     else:
-        if seeds < 1:
-            raise click.BadParameter(f"must be >= 1, found {seeds}", param_hint="--seeds")
         seed_values = list(range(seeds))
     if not seed_values:
         raise click.BadParameter("no seeds given", param_hint="--seed-list")
@@ -375,8 +499,14 @@ def main(argv: Sequence[str] | None = None) -> None:
         click.echo("aborted", err=True)
         sys.exit(130)
     except click.ClickException as e:
-        e.show()
+        # One line, whatever click would have printed (usage, hint, message).
+        command = f" {e.ctx.command_path.split(' ', 1)[1]}" if isinstance(e, click.UsageError) and e.ctx and " " in e.ctx.command_path else ""
+        hint = f" (see fiberplan{command} --help)" if isinstance(e, click.UsageError) else ""
+        click.echo(f"fiberplan: error: {e.format_message()}{hint}", err=True)
         sys.exit(e.exit_code)
+    except InfrastructureError as e:
+        click.echo(f"fiberplan: error: {e}", err=True)
+        sys.exit(EXIT_INFRASTRUCTURE)
     except FiberplanError as e:
         click.echo(f"fiberplan: error: {e}", err=True)
         sys.exit(2)
@@ -386,6 +516,15 @@ def main(argv: Sequence[str] | None = None) -> None:
     except KeyboardInterrupt:
         click.echo("interrupted", err=True)
         sys.exit(130)
+    except MemoryError:
+        click.echo("fiberplan: error: out of memory; plan fewer positioners or a shorter run", err=True)
+        sys.exit(2)
+    except Exception as e:
+        if os.environ.get("FIBERPLAN_DEBUG"):
+            raise
+        click.echo(f"fiberplan: internal error: {type(e).__name__}: {e} (a bug: please report it; FIBERPLAN_DEBUG=1 shows the traceback)",
+                   err=True)
+        sys.exit(EXIT_INTERNAL)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from fiberplan.errors import ScenarioError
 from fiberplan.geometry import min_pair_clearance
-from fiberplan.instrument import Instrument, load_instrument, preset_names
+from fiberplan.instrument import Instrument, instrument_source, load_instrument
 from fiberplan.kinematics import inverse_kinematics
 from fiberplan.layout import focal_plane, hex_patch, neighbour_pairs
 from fiberplan.scenario import TARGET_JOINTS, Scenario
@@ -170,6 +170,7 @@ def make_scenario(
     random_orientation: bool = False,
     clusters: int | None = None,
     cluster_fraction: float = 0.8,
+    instrument_preset: str | None = None,
 ) -> Scenario:
     """Generate a seeded scenario on a hexagonal patch (or a full focal plane by radius).
 
@@ -183,6 +184,8 @@ def make_scenario(
         clusters: number of target clusters for ``clustered`` (default one per 8 positioners).
         cluster_fraction: share of the target density in the clusters for ``clustered``
             (0: uniform targets, close to 1: crowded clusters); a knob for target density.
+        instrument_preset: the preset name of an :class:`Instrument` given as an object (files
+            then store the name instead of the table).
 
     Raises:
         ScenarioError: unknown kind, bad size, or no collision-free configuration found.
@@ -190,8 +193,18 @@ def make_scenario(
     """
     if kind not in SCENARIO_KINDS:
         raise ScenarioError(f"unknown scenario kind {kind!r}; choose one of {', '.join(SCENARIO_KINDS)}")
-    preset = instrument if isinstance(instrument, str) and instrument in preset_names() else None
-    inst = load_instrument(instrument) if isinstance(instrument, str) else instrument
+    if isinstance(instrument, str):
+        kind_of, where = instrument_source(instrument)
+        preset = where if kind_of == "preset" else None
+        inst = load_instrument(instrument)
+    else:
+        inst, preset = instrument, instrument_preset
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer, np.random.Generator)):
+        raise ScenarioError(f"seed must be an integer or a numpy.random.Generator, found {seed!r}")
+    if not isinstance(seed, np.random.Generator) and not 0 <= int(seed) <= 2**63 - 1:
+        raise ScenarioError(f"seed must lie in [0, 2**63 - 1], found {seed}")
+    if radius_mm is None and (isinstance(n_positioners, bool) or not isinstance(n_positioners, (int, np.integer, type(None)))):
+        raise ScenarioError(f"n_positioners must be an integer, found {n_positioners!r}")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     if radius_mm is not None:
         base = focal_plane(radius_mm, inst.pitch_mm)

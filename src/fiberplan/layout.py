@@ -55,6 +55,13 @@ def focal_plane(radius_mm: float, pitch_mm: float) -> np.ndarray:
     """
     if not (math.isfinite(radius_mm) and radius_mm > 0):
         raise ScenarioError(f"focal-plane radius must be a positive number of mm, found {radius_mm}")
+    # Refused before any allocation: a lattice cell holds sqrt(3)/2 pitch^2 of area.
+    estimate = math.pi * radius_mm**2 / (math.sqrt(3) / 2 * pitch_mm**2)
+    if estimate > 1.1 * MAX_POSITIONERS + 100:
+        raise ScenarioError(
+            f"a focal plane of radius {radius_mm:g} mm at pitch {pitch_mm:g} mm holds about {estimate:,.0f} positioners; "
+            f"the limit is {MAX_POSITIONERS:,}"
+        )
     rings = math.ceil(radius_mm / (pitch_mm * math.sqrt(3) / 2)) + 1
     points = _sort_from_centre(_lattice_points(rings, pitch_mm))
     points = points[np.hypot(points[:, 0], points[:, 1]) <= radius_mm + 1e-9]

@@ -18,7 +18,7 @@ import numpy as np
 
 from fiberplan.kinematics import fiber_positions, move_times
 from fiberplan.scenario import Scenario
-from fiberplan.trajectory import PlanResult, Trajectory
+from fiberplan.trajectory import PlanResult, RunFile, Trajectory
 from fiberplan.verify import VerificationReport
 
 
@@ -64,8 +64,17 @@ def energy(trajectory: Trajectory) -> float:
     return float(np.sum(velocity**2 * dt[:, None, None]))
 
 
-def summarize(result: PlanResult, report: VerificationReport | None = None) -> dict[str, Any]:
-    """One JSON-ready summary of a planned (and optionally verified) run."""
+def summarize(result: PlanResult | RunFile, report: VerificationReport | None = None) -> dict[str, Any]:
+    """One JSON-ready summary of a planned (and optionally verified) run.
+
+    ``held`` counts the positioners without a target (they should end where they started),
+    so that a target lost to a typo shows.
+    """
+    with np.errstate(invalid="ignore", over="ignore"):  # a file's non-finite samples give NaN metrics
+        return _summarize(result, report)
+
+
+def _summarize(result: PlanResult | RunFile, report: VerificationReport | None) -> dict[str, Any]:
     scenario, trajectory = result.scenario, result.trajectory
     reached = reached_mask(scenario, trajectory)
     n_targets = int(scenario.has_target.sum())
@@ -83,6 +92,7 @@ def summarize(result: PlanResult, report: VerificationReport | None = None) -> d
         "seed": scenario.seed,
         "reached": int(reached.sum()),
         "targets": n_targets,
+        "held": int(scenario.n_positioners - n_targets),
         "success_rate": float(reached.sum() / n_targets) if n_targets else 1.0,
         "deadlocked": counts["deadlocked"],
         "failed": counts["failed"],

@@ -373,9 +373,16 @@ class Scenario:
             tmp.write_text(text + "\n", encoding="utf-8")
         return path
 
-    def with_starts(self, start_deg: np.ndarray) -> Scenario:
-        """A copy with other start angles (deg)."""
-        return _replace(self, start_deg=np.asarray(start_deg, dtype=float))
+    def with_instrument(self, instrument: Instrument, preset: str | None = None) -> Scenario:
+        """The same positioners, starts and targets on another instrument (validated again).
+
+        Raises:
+            ScenarioError: a start or target does not fit the new instrument (named).
+        """
+        try:
+            return _replace(self, instrument=instrument, instrument_preset=preset)
+        except ScenarioError as e:
+            raise ScenarioError(f"on instrument {instrument.name!r}: {e}") from e
 
 
 def _replace(scenario: Scenario, **changes: Any) -> Scenario:

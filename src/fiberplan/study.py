@@ -10,9 +10,12 @@ distributed cluster, and the sweep is resumable and loss-free:
 - the table ``<out>`` is rebuilt from the parts as runs finish (at most every few seconds)
   and at the end;
 - re-running the same command skips every run whose part exists;
-- a run that raises is recorded as a row with ``status = "error"`` and the message; when a
-  worker process dies, the runs that were in flight are retried one by one in fresh
-  processes, and the one that dies again alone is recorded as an error.
+- a run that raises is recorded as a row with ``status = "error"`` and the message (a
+  deterministic result of its inputs, kept on resume); a run lost to the machinery (its
+  worker process died, its Dask worker was lost) is retried during the sweep (``retries``
+  times) and, if still lost, recorded as ``status = "lost"`` and run again on resume;
+- with no live Dask worker for ``no_worker_timeout_s`` the sweep stops with an error (exit
+  status 3 from the command line), keeping every finished row.
 
 Study file layout::
 
@@ -20,6 +23,8 @@ Study file layout::
     name = "deadlocks"
     out = "deadlocks.parquet"        # default: <study file stem>.parquet beside it
     per_positioner = false           # also write <out stem>.positioners.parquet
+    retries = 2                      # re-runs of a run lost to a dead worker, during the sweep
+    no_worker_timeout_s = 60         # stop when no Dask worker is alive for this long
 
     [grid]
     instrument = ["desi", "moons"]
@@ -32,7 +37,10 @@ Study file layout::
     cluster_fraction = [0.0, 0.5, 0.9]
 
     [settings.dnf]                   # per-planner settings; lists are grid axes
-    lambda_2 = [0.05, 0.2]
+    lambda_repel = [0.05, 0.2]
+
+Every key is checked (a misspelling is an error naming the closest valid key) and every
+setting value is checked against its range for every instrument before any run starts.
 """
 
 from __future__ import annotations
@@ -47,7 +55,7 @@ import os
 import time
 import tomllib
 import traceback
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
@@ -57,9 +65,18 @@ from typing import Any
 import numpy as np
 
 from fiberplan._atomic import atomic_path
-from fiberplan.errors import FiberplanError
+from fiberplan._keys import check_keys
+from fiberplan.errors import FiberplanError, InfrastructureError
 
 GRID_KEYS = ("instrument", "n_positioners", "scenario_kind", "planner")
+STUDY_FILE_KEYS = ("study", "grid", "scenario", "settings")
+STUDY_KEYS = ("name", "out", "per_positioner", "retries", "no_worker_timeout_s")
+
+STATUS_OK = "ok"
+STATUS_ERROR = "error"
+"""The run raised: a deterministic result of its inputs, kept on resume."""
+STATUS_LOST = "lost"
+"""The machinery failed (the worker process died, the Dask worker was lost): run again on resume."""
 SCENARIO_OPTIONS = ("clusters", "cluster_fraction", "random_orientation", "radius_mm")
 """Keyword arguments of :func:`fiberplan.generate.make_scenario` a study may vary (``[scenario]``)."""
 
@@ -120,6 +137,8 @@ class StudySpec:
     out: Path
     tasks: tuple[Task, ...]
     per_positioner: bool = False
+    retries: int = 2
+    no_worker_timeout_s: float = 60.0
     source: dict[str, Any] = field(default_factory=dict, compare=False)
 
     @property
@@ -144,13 +163,16 @@ def expand_grid(data: Mapping[str, Any], origin: str = "study") -> list[Task]:
         StudyError: a grid key is missing, an instrument, kind or planner is unknown, or a
             setting does not exist for its planner.
     """
+    from fiberplan._keys import unknown_key_message
     from fiberplan.generate import SCENARIO_KINDS
     from fiberplan.instrument import load_instrument
-    from fiberplan.planners import planner_names, settings_class
+    from fiberplan.planners import make_settings, planner_names, settings_class
 
+    check_keys(data, STUDY_FILE_KEYS, origin, StudyError)
     grid = data.get("grid")
     if not isinstance(grid, dict):
         raise StudyError(f"{origin}: a [grid] table is needed (keys: {', '.join(GRID_KEYS)}, seeds)")
+    check_keys(grid, (*GRID_KEYS, "seeds"), f"{origin}: [grid]", StudyError)
     missing = [k for k in (*GRID_KEYS, "seeds") if k not in grid]
     if missing:
         raise StudyError(f"{origin}: [grid] lacks {', '.join(missing)}")
@@ -160,7 +182,9 @@ def expand_grid(data: Mapping[str, Any], origin: str = "study") -> list[Task]:
             load_instrument(name)
         except FiberplanError as e:
             raise StudyError(f"{origin}: {e}") from e
-    sizes = [int(v) for v in _as_list(grid["n_positioners"])]
+    sizes = _as_list(grid["n_positioners"])
+    if not sizes or not all(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 50_000 for v in sizes):
+        raise StudyError(f"{origin}: [grid] n_positioners must be integers from 1 to 50,000, found {grid['n_positioners']!r}")
     kinds = [str(v) for v in _as_list(grid["scenario_kind"])]
     for kind in kinds:
         if kind not in SCENARIO_KINDS:
@@ -170,15 +194,33 @@ def expand_grid(data: Mapping[str, Any], origin: str = "study") -> list[Task]:
         if name not in planner_names():
             raise StudyError(f"{origin}: unknown planner {name!r}; choose from {', '.join(planner_names())}")
     seeds_raw = grid["seeds"]
-    seeds = list(range(int(seeds_raw))) if isinstance(seeds_raw, int) else [int(s) for s in seeds_raw]
-    if not seeds:
-        raise StudyError(f"{origin}: no seeds")
+    if isinstance(seeds_raw, bool) or not isinstance(seeds_raw, (int, list)):
+        raise StudyError(f"{origin}: [grid] seeds must be a count or a list of seeds, found {seeds_raw!r}")
+    if isinstance(seeds_raw, int):
+        if not 1 <= seeds_raw <= 1_000_000:
+            raise StudyError(f"{origin}: [grid] seeds = {seeds_raw} must lie in [1, 1000000]")
+        seeds = list(range(seeds_raw))
+    else:
+        seeds = list(seeds_raw)
+        if not seeds or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 2**63 - 1 for v in seeds):
+            raise StudyError(f"{origin}: [grid] seeds must be integers in [0, 2**63 - 1], found {seeds_raw!r}")
     settings_tables = data.get("settings", {})
-    scenario_table = dict(data.get("scenario", {}))
-    allowed = set(SCENARIO_OPTIONS)
-    unknown_options = sorted(set(scenario_table) - allowed)
-    if unknown_options:
-        raise StudyError(f"{origin}: unknown scenario option {unknown_options[0]!r}; choose from {', '.join(sorted(allowed))}")
+    if not isinstance(settings_tables, dict) or not all(isinstance(v, dict) for v in settings_tables.values()):
+        raise StudyError(f"{origin}: [settings] must hold one table per planner, e.g. [settings.mpc]")
+    for name in settings_tables:
+        if name not in planners:
+            raise StudyError(
+                f"{origin}: [settings.{name}] names a planner that is not in [grid] planner ({', '.join(planners)}); "
+                "add it to the grid or remove the table"
+            )
+    scenario_table = data.get("scenario", {})
+    if not isinstance(scenario_table, dict):
+        raise StudyError(f"{origin}: [scenario] must be a table of make_scenario options")
+    scenario_table = dict(scenario_table)
+    check_keys(scenario_table, SCENARIO_OPTIONS, f"{origin}: [scenario]", StudyError)
+    for name, values in scenario_table.items():
+        for value in _as_list(values):
+            _check_scenario_option(name, value, origin)
     option_names = sorted(scenario_table)
     option_combos = list(itertools.product(*(_as_list(scenario_table[n]) for n in option_names))) if option_names else [()]
     tasks: list[Task] = []
@@ -186,11 +228,17 @@ def expand_grid(data: Mapping[str, Any], origin: str = "study") -> list[Task]:
         table = dict(settings_tables.get(planner, {}))
         settings_cls = settings_class(planner)
         known = {f.name for f in dataclasses.fields(settings_cls)}
-        unknown = sorted(set(table) - known)
-        if unknown:
-            raise StudyError(f"{origin}: planner {planner!r} has no setting {unknown[0]!r}; its settings are {', '.join(sorted(known))}")
+        for key in table:
+            if key not in known:
+                raise StudyError(unknown_key_message(key, known, f"{origin}: planner {planner!r}", "setting"))
         names = sorted(table)
         combos = list(itertools.product(*(_as_list(table[n]) for n in names))) if names else [()]
+        # Every value is checked now, for every instrument: a bad one is refused before any run.
+        for instrument, combo in itertools.product(instruments, combos):
+            try:
+                make_settings(planner, load_instrument(instrument), dict(zip(names, combo, strict=True)))
+            except FiberplanError as e:
+                raise StudyError(f"{origin}: [settings.{planner}] on {instrument}: {e}") from e
         for instrument, n, kind, options, combo, seed in itertools.product(instruments, sizes, kinds, option_combos, combos, seeds):
             tasks.append(
                 Task(
@@ -202,18 +250,51 @@ def expand_grid(data: Mapping[str, Any], origin: str = "study") -> list[Task]:
     return tasks
 
 
+def _check_scenario_option(name: str, value: Any, origin: str) -> None:
+    """Refuse a ``[scenario]`` value :func:`fiberplan.generate.make_scenario` cannot take."""
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    ok = {
+        "clusters": isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 100_000,
+        "cluster_fraction": number and 0.0 <= value <= 1.0,
+        "random_orientation": isinstance(value, bool),
+        "radius_mm": number and math.isfinite(value) and value > 0,
+    }[name]
+    valid = {
+        "clusters": "an integer >= 1", "cluster_fraction": "a number in [0, 1]", "random_orientation": "true or false",
+        "radius_mm": "a number of mm > 0",
+    }[name]
+    if not ok:
+        raise StudyError(f"{origin}: [scenario] {name} must be {valid}, found {value!r}")
+
+
 def study_from_dict(data: Mapping[str, Any], out: str | Path, origin: str = "study") -> StudySpec:
     """Build a study from the file layout as a dict (for notebooks and scripts).
 
     Raises:
         StudyError: invalid grid.
     """
-    study = dict(data.get("study", {}))
+    study = data.get("study", {})
+    if not isinstance(study, dict):
+        raise StudyError(f"{origin}: [study] must be a table ({', '.join(STUDY_KEYS)})")
+    check_keys(study, STUDY_KEYS, f"{origin}: [study]", StudyError)
+    per_positioner = study.get("per_positioner", False)
+    retries = study.get("retries", 2)
+    timeout = study.get("no_worker_timeout_s", 60.0)
+    if not isinstance(per_positioner, bool):
+        raise StudyError(f"{origin}: [study] per_positioner must be true or false, found {per_positioner!r}")
+    if isinstance(retries, bool) or not isinstance(retries, int) or not 0 <= retries <= 100:
+        raise StudyError(f"{origin}: [study] retries must be an integer in [0, 100], found {retries!r}")
+    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not 0 < timeout <= 86400:
+        raise StudyError(f"{origin}: [study] no_worker_timeout_s must be a number of seconds in (0, 86400], found {timeout!r}")
+    if "name" in study and not isinstance(study["name"], str):
+        raise StudyError(f"{origin}: [study] name must be a string, found {study['name']!r}")
     return StudySpec(
         name=str(study.get("name", Path(out).stem)),
         out=Path(out),
         tasks=tuple(expand_grid(data, origin=origin)),
-        per_positioner=bool(study.get("per_positioner", False)),
+        per_positioner=per_positioner,
+        retries=retries,
+        no_worker_timeout_s=float(timeout),
         source=dict(data),
     )
 
@@ -229,9 +310,13 @@ def load_study(path: str | Path) -> StudySpec:
         raise StudyError(f"study file {str(path)!r} does not exist")
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as e:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise StudyError(f"study file {str(path)!r} is not valid TOML ({e})") from e
-    out = Path(data.get("study", {}).get("out", path.with_suffix(".parquet").name))
+    study_table = data.get("study", {})
+    raw_out = study_table.get("out", path.with_suffix(".parquet").name) if isinstance(study_table, dict) else None
+    if not isinstance(raw_out, str) or not raw_out:
+        raise StudyError(f"study file {str(path)!r}: [study] out must be a file name, found {raw_out!r}")
+    out = Path(raw_out)
     if not out.is_absolute():
         out = path.parent / out
     return study_from_dict(data, out, origin=f"study file {str(path)!r}")
@@ -284,8 +369,14 @@ def _write_part(parts_dir: Path, row: dict[str, Any]) -> None:
 
     positioners = row.pop("_positioners", None)
     parts_dir.mkdir(parents=True, exist_ok=True)
+    lost = parts_dir / f"{row['task']}.lost.parquet"
+    if row.get("status") == STATUS_LOST:  # shown in the table, but not a finished run
+        with atomic_path(lost) as tmp:
+            pd.DataFrame([row]).to_parquet(tmp, index=False)
+        return
     with atomic_path(parts_dir / f"{row['task']}.parquet") as tmp:
         pd.DataFrame([row]).to_parquet(tmp, index=False)
+    lost.unlink(missing_ok=True)
     if positioners is not None:
         frame = pd.DataFrame(positioners)
         frame.insert(0, "task", row["task"])
@@ -305,15 +396,21 @@ def _parts(spec: StudySpec, positioners: bool = False) -> list[Path]:
 
 
 def finished_tasks(spec: StudySpec) -> set[str]:
-    """Keys of tasks whose part file exists (they are skipped on resume)."""
-    return {p.name.split(".")[0] for p in _parts(spec)}
+    """Keys of tasks whose result exists (skipped on resume); ``lost`` runs are not finished."""
+    return {p.name.split(".")[0] for p in _parts(spec) if not p.name.endswith(".lost.parquet")}
+
+
+def lost_tasks(spec: StudySpec) -> set[str]:
+    """Keys of tasks lost to the machinery (a dead worker) and not finished since."""
+    return {p.name.split(".")[0] for p in _parts(spec) if p.name.endswith(".lost.parquet")} - finished_tasks(spec)
 
 
 def consolidate(spec: StudySpec) -> int:
     """Rebuild the results table (and the per-positioner table) from the parts. Returns the row count."""
     import pandas as pd
 
-    parts = _parts(spec)
+    done = finished_tasks(spec)
+    parts = [p for p in _parts(spec) if not p.name.endswith(".lost.parquet") or p.name.split(".")[0] not in done]
     if not parts:
         return 0
     keys = {t.key: k for k, t in enumerate(spec.tasks)}
@@ -329,21 +426,20 @@ def consolidate(spec: StudySpec) -> int:
     return len(frame)
 
 
-ProgressFactory = Callable[[int, int], Any]
-
-
 def _progress_bar(total: int, initial: int) -> Any:
     from tqdm import tqdm
 
     return tqdm(total=total, initial=initial, desc="runs", unit="run", dynamic_ncols=True)
 
 
-def _local_results(tasks: Sequence[Task], per_positioner: bool, workers: int) -> Iterator[dict[str, Any]]:
+def _local_results(tasks: Sequence[Task], per_positioner: bool, workers: int, retries: int) -> Iterator[dict[str, Any]]:
     """Run tasks on a process pool; a dead worker does not stop the sweep.
 
     When a worker process dies, every run then in flight fails with the broken pool, and
     which one killed it is unknown: those runs are retried one by one, each in a pool of its
-    own, so that a death is blamed on exactly the run that caused it (recorded as an error).
+    own, up to ``retries`` times, so that a death is blamed on exactly the run that caused it.
+    A run whose worker still dies is recorded as ``lost`` (run again on resume), never as a
+    result.
     """
     suspects: list[Task] = []
     with ProcessPoolExecutor(max_workers=workers) as pool:
@@ -361,32 +457,83 @@ def _local_results(tasks: Sequence[Task], per_positioner: bool, workers: int) ->
                 suspects.extend(futures.values())
                 futures = {}
     for task in suspects:
-        with ProcessPoolExecutor(max_workers=1) as alone:
-            try:
-                yield alone.submit(run_task, task, per_positioner).result()
-            except BrokenProcessPool:
-                yield _crash_row(task, "worker process died on this run (retried alone)")
+        for attempt in range(1, max(1, retries) + 1):
+            with ProcessPoolExecutor(max_workers=1) as alone:
+                try:
+                    yield alone.submit(run_task, task, per_positioner).result()
+                    break
+                except BrokenProcessPool:
+                    if attempt == max(1, retries):
+                        yield _lost_row(task, f"worker process died on this run ({attempt} attempt(s) alone); run the sweep again to retry")
 
 
-def _crash_row(task: Task, message: str) -> dict[str, Any]:
+def _lost_row(task: Task, message: str) -> dict[str, Any]:
     return {
         **task.parameters(),
-        "status": "error",
+        "status": STATUS_LOST,
         "error": message,
     }
 
 
-def _dask_results(tasks: Sequence[Task], per_positioner: bool, scheduler: str) -> Iterator[dict[str, Any]]:
-    from dask.distributed import Client, as_completed
+def _live_workers(client: Any) -> int:
+    return len(client.scheduler_info().get("workers", {}))
 
-    with Client(scheduler) as client:
-        futures = {client.submit(run_task, t, per_positioner, key=f"fiberplan-{t.key}", pure=False): t for t in tasks}
-        for fut in as_completed(futures):
-            task = futures[fut]
-            try:
-                yield fut.result()
-            except Exception as e:
-                yield _crash_row(task, f"{type(e).__name__}: {e}")
+
+def _dask_results(
+    tasks: Sequence[Task], per_positioner: bool, scheduler: str, retries: int, no_worker_timeout_s: float,
+) -> Iterator[dict[str, Any]]:
+    """Run tasks on a Dask cluster. A lost worker's runs are re-run by Dask (``retries`` times);
+    a run still lost becomes a ``lost`` row. With no live worker for ``no_worker_timeout_s``
+    the sweep stops: :class:`InfrastructureError` (every finished row is kept)."""
+    from dask.distributed import Client
+
+    try:
+        client = Client(scheduler, timeout=min(30.0, no_worker_timeout_s))
+    except (OSError, TimeoutError) as e:
+        raise InfrastructureError(f"cannot reach the Dask scheduler at {scheduler} ({type(e).__name__}: {e}); is it running?") from e
+    with client:
+        pending = {
+            client.submit(run_task, t, per_positioner, key=f"fiberplan-{t.key}", pure=False, retries=retries): t for t in tasks
+        }
+        last_worker = time.monotonic()
+        last_check = 0.0
+        while pending:
+            # Futures are polled (not waited on): a future the scheduler re-queues after losing its
+            # worker must not block the sweep, which has to notice that no worker is left.
+            ready = [f for f in pending if f.status in ("finished", "error", "cancelled", "lost")]
+            for fut in ready:
+                task = pending.pop(fut)
+                if fut.status == "finished":
+                    try:
+                        yield fut.result(timeout=60)
+                        continue
+                    except Exception as e:  # the result could not be fetched: its worker went away
+                        yield _lost_row(task, f"{type(e).__name__}: {e}")
+                        continue
+                # run_task never raises: an error here is the machinery (a lost or killed worker)
+                try:
+                    detail = repr(fut.exception(timeout=10)) if fut.status == "error" else fut.status
+                except Exception as e:
+                    detail = f"{type(e).__name__}: {e}"
+                yield _lost_row(task, f"Dask run {fut.status}: {detail}")
+            if ready:
+                continue
+            now = time.monotonic()
+            if now - last_check >= 0.5:
+                last_check = now
+                try:
+                    alive = _live_workers(client)
+                except Exception as e:  # the scheduler itself is gone
+                    raise InfrastructureError(f"lost the Dask scheduler at {scheduler} ({type(e).__name__}: {e})") from e
+                if alive:
+                    last_worker = now
+                elif now - last_worker >= no_worker_timeout_s:
+                    client.cancel(list(pending))
+                    raise InfrastructureError(
+                        f"no live Dask worker at {scheduler} for {no_worker_timeout_s:g} s; stopped. Every finished run is kept: "
+                        "start workers and run the same command again to resume"
+                    )
+            time.sleep(0.05)
 
 
 def run_study(
@@ -416,9 +563,11 @@ def run_study(
     try:
         if todo:
             if scheduler:
-                results: Iterable[dict[str, Any]] = _dask_results(todo, spec.per_positioner, scheduler)
+                results: Iterable[dict[str, Any]] = _dask_results(
+                    todo, spec.per_positioner, scheduler, spec.retries, spec.no_worker_timeout_s
+                )
             else:
-                results = _local_results(todo, spec.per_positioner, workers or os.cpu_count() or 1)
+                results = _local_results(todo, spec.per_positioner, workers or os.cpu_count() or 1, spec.retries)
             for row in results:
                 _write_part(spec.parts_dir, row)
                 if bar is not None:
@@ -444,7 +593,10 @@ def load_results(path: str | Path) -> Any:
     path = Path(path)
     if not path.is_file():
         raise StudyError(f"results table {str(path)!r} does not exist")
-    return pd.read_parquet(path)
+    try:
+        return pd.read_parquet(path)
+    except Exception as e:  # pyarrow raises its own types for a file that is not Parquet
+        raise StudyError(f"results table {str(path)!r} is not a Parquet table ({type(e).__name__}: {e}); give the .parquet a sweep wrote") from e
 
 
 def wilson_interval(successes: float, trials: float, z: float = 1.96) -> tuple[float, float]:

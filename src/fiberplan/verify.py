@@ -168,6 +168,11 @@ def verify(
         raise TrajectoryError(f"fraction must lie in (0, 1), found {fraction}")
     if int(time_chunk) != time_chunk or time_chunk < 1:
         raise TrajectoryError(f"time_chunk must be an integer >= 1, found {time_chunk}")
+    with np.errstate(invalid="ignore", over="ignore"):  # non-finite samples are reported, not warned about
+        return _verify(scenario, trajectory, fraction, int(time_chunk), instrument)
+
+
+def _verify(scenario: Scenario, trajectory: Trajectory, fraction: float, time_chunk: int, instrument: Instrument | None) -> VerificationReport:
     inst = scenario.instrument if instrument is None else instrument
     times = trajectory.times
     n_t, n = trajectory.joints.shape[0], trajectory.joints.shape[1]
