@@ -65,15 +65,15 @@ def check_output_path(
     if str(path) == "":
         raise OutputError(f"{what}: empty path; give a file name")
     _refuse_non_regular(final, what)
+    for source in inputs:
+        if source is not None and Path(source).exists() and _same_file(final, Path(source)):
+            raise OutputError(f"{what} {str(final)!r} is also an input of this command; write the output to another path")
     if suffixes is not None:
         allowed = tuple(suffixes)
         if final.suffix.lower() not in allowed:
             raise OutputError(
                 f"{what} {str(final)!r}: unsupported extension {final.suffix or '(none)'!r}; use one of {', '.join(allowed)}"
             )
-    for source in inputs:
-        if source is not None and Path(source).exists() and _same_file(final, Path(source)):
-            raise OutputError(f"{what} {str(final)!r} is also an input of this command; write the output to another path")
     folder = final.parent if str(final.parent) else Path(".")
     existing = folder
     while not existing.exists() and not existing.is_symlink():
