@@ -23,7 +23,7 @@ import fiberplan as fp
 from fiberplan.cli import main
 
 SMALL = settings(max_examples=150, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
-LARGE = settings(max_examples=600, deadline=None, suppress_health_check=list(HealthCheck))
+LARGE = settings(max_examples=3000, deadline=None, suppress_health_check=list(HealthCheck))
 
 ODD_VALUES = st.one_of(
     st.none(), st.booleans(), st.integers(min_value=-(2**80), max_value=2**80),
@@ -69,14 +69,14 @@ def mutated(draw, base: Any, n_edits: int = 3) -> Any:
         parent = _get(tree, path[:-1])
         key = path[-1]
         if action == "replace":
-            parent[key] = draw(ODD_VALUES)
+            parent[key] = copy.deepcopy(draw(ODD_VALUES))
         elif action == "delete":
             if isinstance(parent, dict):
                 del parent[key]
             elif len(parent) > 1:
                 parent.pop(key)
         elif action == "add" and isinstance(parent, dict):
-            parent[draw(KEYS)] = draw(ODD_VALUES)
+            parent[draw(KEYS)] = copy.deepcopy(draw(ODD_VALUES))
         elif action == "rename" and isinstance(parent, dict):
             parent[str(key) + draw(st.sampled_from(["t", "s", "_", "x"]))] = parent.pop(key)
     return tree

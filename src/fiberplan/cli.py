@@ -35,6 +35,18 @@ JSON_SUFFIXES = (".json",)
 PARQUET_SUFFIXES = (".parquet",)
 
 SEED = click.IntRange(0, MAX_SEED)
+
+
+class _FilePath(click.Path):
+    """A path option or argument: refused in one line when no file system could hold it."""
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        if isinstance(value, str) and ("\x00" in value or value == ""):
+            self.fail(f"{value!r} is not a usable path", param, ctx)
+        return super().convert(value, param, ctx)
+
+
+PATH = _FilePath(path_type=Path)
 POSITIONERS = click.IntRange(1, 50_000)
 
 
@@ -138,11 +150,11 @@ def _build_scenario(
               help="Lay out a full focal plane of this radius instead of a patch.")
 @click.option("--scenario-kind", default="random", show_default=True, help="random, unfold, fold or clustered.")
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the scenario generator.")
-@click.option("--scenario", "scenario_file", type=click.Path(path_type=Path), default=None, help="Plan this scenario file instead.")
+@click.option("--scenario", "scenario_file", type=PATH, default=None, help="Plan this scenario file instead.")
 @click.option("--planner", default=DEFAULT_PLANNER, show_default=True, help="Planner name (see `fiberplan planners`).")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="Planner setting override (repeatable).")
-@click.option("--out", type=click.Path(path_type=Path), default=None, help="Write the trajectory to this HDF5 file (.h5).")
-@click.option("--picture", type=click.Path(path_type=Path), default=None, help="Write a snapshot (first collision, else the end).")
+@click.option("--out", type=PATH, default=None, help="Write the trajectory to this HDF5 file (.h5).")
+@click.option("--picture", type=PATH, default=None, help="Write a snapshot (first collision, else the end).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the table.")
 @click.option("--no-verify", is_flag=True, help="Skip the independent verifier.")
 @click.option("--strict", is_flag=True, help="Exit with status 1 if the verifier finds a collision or violation.")
@@ -220,7 +232,7 @@ def plan(
 
 
 @cli.command()
-@click.argument("file", type=click.Path(path_type=Path))
+@click.argument("file", type=PATH)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @click.option("--max-events", default=20, show_default=True, type=click.IntRange(min=0), help="Events of each kind to list in the table.")
 @click.option("--instrument", default=None, help="Check against this preset or instrument .toml file instead of the file's geometry.")
@@ -277,8 +289,8 @@ def verify(file: Path, as_json: bool, max_events: int, instrument: str | None) -
 
 
 @cli.command()
-@click.argument("file", type=click.Path(path_type=Path))
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="PNG (or PDF/SVG) to write.")
+@click.argument("file", type=PATH)
+@click.option("--out", type=PATH, required=True, help="PNG (or PDF/SVG) to write.")
 @click.option("--time", "t", type=click.FloatRange(min=0.0), default=None, help="Instant to draw (s); default the first collision, else the end.")
 def show(file: Path, out: Path, t: float | None) -> None:
     """Draw a snapshot of a run: arms, capsules, targets, collisions in red."""
@@ -296,8 +308,8 @@ def show(file: Path, out: Path, t: float | None) -> None:
 
 
 @cli.command()
-@click.argument("file", type=click.Path(path_type=Path))
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="GIF (or MP4 with ffmpeg) to write.")
+@click.argument("file", type=PATH)
+@click.option("--out", type=PATH, required=True, help="GIF (or MP4 with ffmpeg) to write.")
 @click.option("--fps", default=20, show_default=True, type=click.IntRange(1, 240), help="Frames per second.")
 @click.option("--frames", default=120, show_default=True, type=click.IntRange(2, 10_000), help="Largest number of frames.")
 def animate(file: Path, out: Path, fps: int, frames: int) -> None:
@@ -317,7 +329,7 @@ def animate(file: Path, out: Path, fps: int, frames: int) -> None:
 @click.option("--radius-mm", type=click.FloatRange(min=0, min_open=True), default=None)
 @click.option("--kind", default="random", show_default=True, help="random, unfold, fold or clustered.")
 @click.option("--seed", default=0, show_default=True, type=SEED)
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="Scenario JSON file to write.")
+@click.option("--out", type=PATH, required=True, help="Scenario JSON file to write.")
 def scenario(instrument: str, positioners: int, radius_mm: float | None, kind: str, seed: int, out: Path) -> None:
     """Generate a seeded scenario and write it as JSON."""
     check_output_path(out, what="--out", suffixes=JSON_SUFFIXES)
@@ -375,7 +387,7 @@ def planners(settings_of: str | None, instrument: str, as_json: bool) -> None:
 
 
 @cli.command()
-@click.argument("spec", type=click.Path(path_type=Path))
+@click.argument("spec", type=PATH)
 @click.option("--scheduler", default=None, help="Address of a Dask distributed scheduler (default: a local process pool).")
 @click.option("--workers", type=int, default=None, help="Local worker processes (default: all cores).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
@@ -402,12 +414,12 @@ def sweep(spec: Path, scheduler: str | None, workers: int | None, quiet: bool) -
 
 
 @cli.command("study-plot")
-@click.argument("results", type=click.Path(path_type=Path))
+@click.argument("results", type=PATH)
 @click.option("--kind", type=click.Choice(["rates", "scaling", "makespan"]), default="rates", show_default=True)
 @click.option("--x", "x", default="n_positioners", show_default=True, help="Column on the x axis (rates).")
 @click.option("--by", default="planner", show_default=True, help="Column separating curves / boxes.")
 @click.option("--rate", type=click.Choice(["deadlock", "success"]), default="deadlock", show_default=True)
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="Image to write.")
+@click.option("--out", type=PATH, required=True, help="Image to write.")
 def study_plot(results: Path, kind: str, x: str, by: str, rate: str, out: Path) -> None:
     """Plot a study table: rates with error bars, plan time vs N, or makespan / lower bound."""
     check_output_path(out, what="--out", suffixes=IMAGE_SUFFIXES, inputs=[results])
@@ -439,7 +451,7 @@ def study_plot(results: Path, kind: str, x: str, by: str, rate: str, out: Path) 
 @click.option("--planners", "planner_list", default="central,mpc,dnf", show_default=True, help="Comma-separated planner names.")
 @click.option("--set", "settings", multiple=True, metavar="PLANNER.KEY=VALUE", help="Setting override of one planner (repeatable).")
 @click.option("--energy-gap", is_flag=True, help="Also solve central in energy mode at each planner's makespan.")
-@click.option("--out", type=click.Path(path_type=Path), default=Path("compare.parquet"), show_default=True, help="Parquet file of the rows.")
+@click.option("--out", type=PATH, default=Path("compare.parquet"), show_default=True, help="Parquet file of the rows.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (rows and aggregates) instead of the table.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def compare(

@@ -295,6 +295,8 @@ def instrument_source(name_or_path: str | Path) -> tuple[str, str | None]:
         InstrumentError: neither an existing file nor a preset name.
     """
     text = str(name_or_path)
+    if "\x00" in text or not text:
+        raise InstrumentError(f"instrument {text!r}: not a preset name or a file path")
     path = Path(name_or_path)
     if path.is_file():
         return "file", str(path)
