@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fiberplan.errors import PlannerError
-from fiberplan.instrument import load_instrument
+from fiberplan.instrument_io import load_instrument
 from fiberplan.kinematics import inverse_kinematics, move_times
 from fiberplan.metrics import energy, lower_bound_s, summarize
 from fiberplan.planners import central as central_module

@@ -10,7 +10,7 @@ import pytest
 
 from fiberplan.errors import PlannerError
 from fiberplan.generate import make_scenario
-from fiberplan.instrument import load_instrument
+from fiberplan.instrument_io import load_instrument
 from fiberplan.metrics import summarize
 from fiberplan.planners import make_settings, plan
 from fiberplan.planners.dnf import (

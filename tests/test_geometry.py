@@ -8,7 +8,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from fiberplan.geometry import capsule_segments, capsule_tables, combo_clearances, pair_clearance, segment_distance
-from fiberplan.instrument import load_instrument
+from fiberplan.instrument_io import load_instrument
 
 coord = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
 point = st.tuples(coord, coord)

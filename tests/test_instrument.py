@@ -7,7 +7,7 @@ import math
 import pytest
 
 from fiberplan.errors import InstrumentError
-from fiberplan.instrument import load_instrument, preset_names
+from fiberplan.instrument_io import load_instrument, preset_names
 
 NUMBERED_KEYS = (
     "pitch_mm", "alpha_arm_mm", "beta_arm_mm", "alpha_speed_rpm", "beta_speed_rpm",

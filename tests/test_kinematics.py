@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fiberplan.instrument import load_instrument
+from fiberplan.instrument_io import load_instrument
 from fiberplan.kinematics import (
     best_parity_joints,
     fiber_jacobian,

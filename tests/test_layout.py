@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fiberplan.errors import ScenarioError
-from fiberplan.instrument import load_instrument
+from fiberplan.instrument_io import load_instrument
 from fiberplan.layout import focal_plane, hex_patch, neighbour_lists, neighbour_pairs
 
 

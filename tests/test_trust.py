@@ -336,7 +336,7 @@ def test_absurd_instruments_are_refused(edit, match):
     data = fp.load_instrument("desi").to_dict()
     edit(data)
     with pytest.raises(InstrumentError, match=match):
-        fp.instrument.instrument_from_dict(data)
+        fp.instrument_io.instrument_from_dict(data)
 
 
 @pytest.mark.parametrize(("key", "value", "match"), [

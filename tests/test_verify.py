@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fiberplan.generate import make_scenario
-from fiberplan.instrument import load_instrument
+from fiberplan.instrument_io import load_instrument
 from fiberplan.planners import plan
 from fiberplan.scenario import TARGET_JOINTS, Scenario
 from fiberplan.trajectory import Trajectory

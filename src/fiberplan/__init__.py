@@ -7,7 +7,8 @@ The public API in five names::
 
 from fiberplan.errors import FiberplanError, InstrumentError, PlannerError, ScenarioError, TrajectoryFileError
 from fiberplan.generate import SCENARIO_KINDS, make_scenario
-from fiberplan.instrument import Instrument, load_instrument, preset_names
+from fiberplan.instrument import Instrument
+from fiberplan.instrument_io import load_instrument, preset_names
 from fiberplan.metrics import summarize
 from fiberplan.planners import make_settings, plan, planner_names
 from fiberplan.scenario import Scenario, load_scenario

@@ -70,7 +70,7 @@ def _explicit(ctx: click.Context, *names: str) -> list[str]:
 
 def _instrument_arg(text: str) -> tuple[Any, str | None, str]:
     """An ``--instrument`` value: the instrument, its preset name (or None) and what was used."""
-    from fiberplan.instrument import instrument_source, load_instrument
+    from fiberplan.instrument_io import instrument_source, load_instrument
 
     kind, where = instrument_source(text)
     inst = load_instrument(text)
@@ -345,7 +345,7 @@ def scenario(instrument: str, positioners: int, radius_mm: float | None, kind: s
 @click.argument("name", required=False)
 def instruments(name: str | None) -> None:
     """List the instrument presets, or show one with the source of every number."""
-    from fiberplan.instrument import load_instrument, preset_names
+    from fiberplan.instrument_io import load_instrument, preset_names
 
     if name is None:
         for preset in preset_names():

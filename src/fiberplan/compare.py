@@ -34,7 +34,8 @@ import numpy as np
 
 from fiberplan._atomic import atomic_path
 from fiberplan.errors import PlannerError, ScenarioError
-from fiberplan.instrument import Instrument, load_instrument
+from fiberplan.instrument import Instrument
+from fiberplan.instrument_io import load_instrument
 from fiberplan.kinematics import move_times
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult
@@ -80,7 +81,7 @@ def hard_scenario(
         InstrumentError: unknown instrument preset.
     """
     from fiberplan.generate import clustered_sampler, joint_scenario, random_configuration
-    from fiberplan.instrument import preset_names
+    from fiberplan.instrument_io import preset_names
     from fiberplan.layout import hex_patch, neighbour_pairs
     from fiberplan.planners.straight import StraightSettings, plan_straight
     from fiberplan.verify import verify

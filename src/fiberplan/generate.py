@@ -27,7 +27,8 @@ from scipy.spatial import cKDTree
 
 from fiberplan.errors import ScenarioError
 from fiberplan.geometry import min_pair_clearance
-from fiberplan.instrument import Instrument, instrument_source, load_instrument
+from fiberplan.instrument import Instrument
+from fiberplan.instrument_io import instrument_source, load_instrument
 from fiberplan.kinematics import inverse_kinematics
 from fiberplan.layout import focal_plane, hex_patch, neighbour_pairs
 from fiberplan.scenario import TARGET_JOINTS, Scenario

@@ -38,7 +38,8 @@ from fiberplan._atomic import atomic_path
 from fiberplan._keys import check_keys
 from fiberplan.errors import InstrumentError, ScenarioError
 from fiberplan.geometry import min_pair_clearance
-from fiberplan.instrument import Instrument, instrument_from_dict, load_instrument
+from fiberplan.instrument import Instrument
+from fiberplan.instrument_io import instrument_from_dict, load_instrument
 from fiberplan.kinematics import best_parity_joints, fiber_positions, inverse_kinematics, parity_of
 from fiberplan.layout import neighbour_pairs
 
@@ -503,7 +504,7 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
 
 
 def _is_preset(name: str) -> bool:
-    from fiberplan.instrument import preset_names
+    from fiberplan.instrument_io import preset_names
 
     return name in preset_names()
 

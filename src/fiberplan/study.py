@@ -165,7 +165,7 @@ def expand_grid(data: Mapping[str, Any], origin: str = "study") -> list[Task]:
     """
     from fiberplan._keys import unknown_key_message
     from fiberplan.generate import SCENARIO_KINDS
-    from fiberplan.instrument import load_instrument
+    from fiberplan.instrument_io import load_instrument
     from fiberplan.planners import make_settings, planner_names, settings_class
 
     check_keys(data, STUDY_FILE_KEYS, origin, StudyError)

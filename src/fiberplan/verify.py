@@ -31,7 +31,8 @@ import numpy as np
 
 from fiberplan.errors import TrajectoryError
 from fiberplan.geometry import capsule_segments, clearance_between
-from fiberplan.instrument import Instrument, load_instrument, preset_names
+from fiberplan.instrument import Instrument
+from fiberplan.instrument_io import load_instrument, preset_names
 from fiberplan.layout import neighbour_pairs
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import RunFile, Trajectory

@@ -13,6 +13,7 @@ from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
 from fiberplan._keys import unknown_key_message
+from fiberplan._registry import PLANNERS, planner_names
 from fiberplan.errors import PlannerError, SettingsError
 from fiberplan.instrument import Instrument
 from fiberplan.scenario import Scenario
@@ -21,13 +22,7 @@ from fiberplan.trajectory import PlanResult
 ProgressCallback = Callable[[float], None]
 """Called with the fraction of the work done, in [0, 1]."""
 
-_PLANNERS: dict[str, tuple[str, str, str]] = {
-    # name: (module, planning function, settings dataclass)
-    "straight": ("fiberplan.planners.straight", "plan_straight", "StraightSettings"),
-    "mpc": ("fiberplan.planners.mpc", "plan_mpc", "MpcSettings"),
-    "dnf": ("fiberplan.planners.dnf", "plan_dnf", "DnfSettings"),
-    "central": ("fiberplan.planners.central", "plan_central", "CentralSettings"),
-}
+_PLANNERS = PLANNERS
 
 
 class PlannerFunction(Protocol):
@@ -52,11 +47,6 @@ def instrument_defaults(instrument: Instrument, table: str, defaults: Any) -> An
         return dataclasses.replace(defaults, **overrides)
     except SettingsError as e:
         raise SettingsError(f"instrument {instrument.name!r}: [planner_defaults.{table}]: {e}") from e
-
-
-def planner_names() -> list[str]:
-    """Names of the registered planners."""
-    return sorted(_PLANNERS)
 
 
 def _lookup(name: str) -> tuple[PlannerFunction, type]:

@@ -1,0 +1,229 @@
+"""Instrument files: presets, TOML reading, and every check a file must pass.
+
+Presets ship inside the package (``src/fiberplan/instruments/*.toml``). A file is read key
+by key: an unknown key is an error naming the closest valid one, every number is checked,
+and the instrument must make physical sense (see :func:`check_instrument`: capsules within
+their arms, a datum at which neighbours on the lattice do not collide).
+
+Joint conventions (``DESIGN.md``): alpha is absolute about the positioner base, beta is
+relative to the alpha arm and equal to zero with the arms in line. A file may state
+``beta_convention = "folded"`` to give beta limits and datum measured from the folded arm
+(MOONS documents do); they are converted by adding 180 deg.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fiberplan._keys import check_keys
+from fiberplan._registry import planner_names
+from fiberplan.errors import InstrumentError
+from fiberplan.geometry import min_pair_clearance
+from fiberplan.instrument import _RPM_TO_RAD_S, Capsule, Instrument
+
+TOP_KEYS = ("name", "description", "beta_convention", "geometry", "motion", "capsules", "planner_defaults", "sources")
+GEOMETRY_KEYS = ("pitch_mm", "alpha_arm_mm", "beta_arm_mm", "min_base_distance_mm")
+MOTION_KEYS = ("alpha_speed_rpm", "beta_speed_rpm", "alpha_limits_deg", "beta_limits_deg", "datum_deg", "tolerance_mm")
+CAPSULE_KEYS = ("name", "arm", "start_mm", "end_mm", "radius_mm", "layer")
+BETA_CONVENTIONS = ("extended", "folded")
+
+
+def check_instrument(instrument: Instrument) -> None:
+    """Refuse a datum at which neighbours on the lattice collide: it must be safe for everyone.
+
+    Raises:
+        InstrumentError: naming the pitch, the overlap and what to check.
+    """
+    third = math.sqrt(3.0) / 2.0
+    ring = instrument.pitch_mm * np.array([[0.0, 0.0], [1, 0], [0.5, third], [-0.5, third], [-1, 0], [-0.5, -third], [0.5, -third]])
+    pairs = np.array([(i, j) for i in range(7) for j in range(i + 1, 7)])
+    joints = np.tile(np.array(instrument.datum_rad), (7, 1))
+    clearance = min_pair_clearance(instrument, ring, np.zeros(7), joints, pairs)
+    if np.any(clearance < 0.0):
+        raise InstrumentError(
+            f"instrument {instrument.name!r}: at the datum {np.round(np.degrees(instrument.datum_rad), 6).tolist()} deg (extended convention) "
+            f"neighbours {instrument.pitch_mm:g} mm apart collide (overlap {-float(clearance.min()):.4g} mm); the datum must be "
+            "collision-free for every neighbour pair: check datum_deg, beta_convention and the capsules"
+        )
+
+
+
+def preset_names() -> list[str]:
+    """Names of the instrument presets shipped with fiberplan."""
+    folder = resources.files("fiberplan") / "instruments"
+    return sorted(p.name[: -len(".toml")] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def instrument_source(name_or_path: str | Path) -> tuple[str, str | None]:
+    """How :func:`load_instrument` reads ``name_or_path``: ``("file", path)``, ``("preset", name)``.
+
+    An argument that is an existing *file* is read as a file; otherwise a preset name is the
+    preset (a folder named ``moons`` in the working directory does not hide the preset).
+
+    Raises:
+        InstrumentError: neither an existing file nor a preset name.
+    """
+    text = str(name_or_path)
+    if "\x00" in text or not text:
+        raise InstrumentError(f"instrument {text!r}: not a preset name or a file path")
+    path = Path(name_or_path)
+    if path.is_file():
+        return "file", str(path)
+    if text in preset_names():
+        return "preset", text
+    if path.suffix == ".toml" or any(sep in text for sep in ("/", "\\")):
+        what = "is not a file" if path.exists() else "does not exist"
+        raise InstrumentError(f"instrument file {text!r} {what}; give an instrument .toml file or a preset ({', '.join(preset_names())})")
+    raise InstrumentError(
+        f"unknown instrument preset {text!r}; choose one of {', '.join(preset_names())} or give the path of an instrument .toml file"
+    )
+
+
+def load_instrument(name_or_path: str | Path) -> Instrument:
+    """Load a preset by name (``desi``, ``moons``, ``sdss``) or an instrument TOML file by path.
+
+    An existing file wins over a preset of the same name (:func:`instrument_source`).
+
+    Raises:
+        InstrumentError: the preset is unknown, the file is missing or malformed, or a value
+            is out of range. The message names the key and what to fix.
+    """
+    kind, where = instrument_source(name_or_path)
+    if kind == "file":
+        try:
+            raw = Path(str(where)).read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as e:
+            raise InstrumentError(f"instrument file {where!r} cannot be read ({e})") from e
+        origin = f"instrument file {where!r}"
+    else:
+        raw = (resources.files("fiberplan") / "instruments" / f"{where}.toml").read_text(encoding="utf-8")
+        origin = f"preset {where}"
+    try:
+        data = tomllib.loads(raw)
+    except tomllib.TOMLDecodeError as e:
+        raise InstrumentError(f"{origin}: not valid TOML ({e})") from e
+    return instrument_from_dict(data, origin=origin)
+
+
+def _table(data: dict[str, Any], key: str, origin: str) -> dict[str, Any]:
+    if key not in data:
+        raise InstrumentError(f"{origin}: missing key {key!r} (a [{key}] table); see src/fiberplan/instruments/desi.toml for the layout")
+    value = data[key]
+    if not isinstance(value, dict):
+        raise InstrumentError(f"{origin}: [{key}] must be a table; see src/fiberplan/instruments/desi.toml for the layout")
+    return value
+
+
+def _number(table: dict[str, Any], key: str, where: str) -> float:
+    if key not in table:
+        raise InstrumentError(f"{where}: missing key {key!r}; see src/fiberplan/instruments/desi.toml for the layout")
+    value = table[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InstrumentError(f"{where}: {key} must be a number, found {value!r}")
+    out = float(value)
+    if not math.isfinite(out):
+        raise InstrumentError(f"{where}: {key} must be finite, found {value!r}")
+    return out
+
+
+def _pair(table: dict[str, Any], key: str, where: str) -> tuple[float, float]:
+    value = table.get(key)
+    if not isinstance(value, list) or len(value) != 2:
+        raise InstrumentError(f"{where}: {key} must be a pair [first, second] in degrees, found {value!r}")
+    first, second = (_number({key: v}, key, where) for v in value)
+    return first, second
+
+
+def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> Instrument:
+    """Build an :class:`Instrument` from the file layout (mm, deg, rpm).
+
+    Every key is checked: an unknown key (a misspelling such as ``beta_convension``) is an
+    error naming it and the closest valid key.
+
+    Raises:
+        InstrumentError: a key is missing, unknown, or has the wrong type or value.
+    """
+    if not isinstance(data, dict):
+        raise InstrumentError(f"{origin}: an instrument must be a table")
+    check_keys(data, TOP_KEYS, origin, InstrumentError)
+    convention = data.get("beta_convention", "extended")
+    if convention not in BETA_CONVENTIONS:
+        raise InstrumentError(f"{origin}: beta_convention must be 'extended' or 'folded', found {convention!r}")
+    beta_shift = math.pi if convention == "folded" else 0.0
+    geometry = _table(data, "geometry", origin)
+    motion = _table(data, "motion", origin)
+    check_keys(geometry, GEOMETRY_KEYS, f"{origin}: [geometry]", InstrumentError)
+    check_keys(motion, MOTION_KEYS, f"{origin}: [motion]", InstrumentError)
+    where_m = f"{origin}: [motion]"
+    alpha_limits = tuple(math.radians(v) for v in _pair(motion, "alpha_limits_deg", where_m))
+    beta_limits = tuple(math.radians(v) + beta_shift for v in _pair(motion, "beta_limits_deg", where_m))
+    datum_deg = _pair(motion, "datum_deg", where_m)
+    datum = (math.radians(datum_deg[0]), math.radians(datum_deg[1]) + beta_shift)
+    raw_capsules = data.get("capsules")
+    if not isinstance(raw_capsules, list) or not all(isinstance(c, dict) for c in raw_capsules):
+        raise InstrumentError(f"{origin}: [[capsules]] must be a list of tables (name, arm, start_mm, end_mm, radius_mm, layer)")
+    capsules = []
+    for k, c in enumerate(raw_capsules):
+        where_c = f"{origin}: capsule #{k} ({c.get('name', '?')!r})"
+        check_keys(c, CAPSULE_KEYS, where_c, InstrumentError)
+        layer = c.get("layer", 0)
+        if isinstance(layer, bool) or not isinstance(layer, int):
+            raise InstrumentError(f"{where_c}: layer must be an integer, found {layer!r}")
+        if "name" not in c or "arm" not in c:
+            raise InstrumentError(f"{where_c}: missing key {'name' if 'name' not in c else 'arm'!r}")
+        capsules.append(
+            Capsule(
+                name=str(c["name"]), arm=c["arm"], start_mm=_number(c, "start_mm", where_c), end_mm=_number(c, "end_mm", where_c),
+                radius_mm=_number(c, "radius_mm", where_c), layer=layer,
+            )
+        )
+    defaults = data.get("planner_defaults", {})
+    if not isinstance(defaults, dict):
+        raise InstrumentError(f"{origin}: [planner_defaults] must be a table")
+    check_keys(defaults, ("dt_s", *planner_names()), f"{origin}: [planner_defaults]", InstrumentError)
+    for key, value in defaults.items():
+        if key != "dt_s" and not isinstance(value, dict):
+            raise InstrumentError(f"{origin}: [planner_defaults.{key}] must be a table of {key} settings")
+    if "dt_s" in defaults:
+        _number(defaults, "dt_s", f"{origin}: [planner_defaults]")
+    sources = data.get("sources", {})
+    if not isinstance(sources, dict):
+        raise InstrumentError(f"{origin}: [sources] must be a table of strings")
+    for key in ("name", "description"):
+        if key in data and not isinstance(data[key], str):
+            raise InstrumentError(f"{origin}: {key} must be a string, found {data[key]!r}")
+    if "name" not in data:
+        raise InstrumentError(f"{origin}: missing key 'name'; see src/fiberplan/instruments/desi.toml for the layout")
+    where_g = f"{origin}: [geometry]"
+    try:
+        instrument = Instrument(
+            name=str(data["name"]),
+            description=str(data.get("description", "")),
+            pitch_mm=_number(geometry, "pitch_mm", where_g),
+            alpha_arm_mm=_number(geometry, "alpha_arm_mm", where_g),
+            beta_arm_mm=_number(geometry, "beta_arm_mm", where_g),
+            min_base_distance_mm=_number(geometry, "min_base_distance_mm", where_g) if "min_base_distance_mm" in geometry else None,
+            alpha_speed_rad_s=_number(motion, "alpha_speed_rpm", where_m) * _RPM_TO_RAD_S,
+            beta_speed_rad_s=_number(motion, "beta_speed_rpm", where_m) * _RPM_TO_RAD_S,
+            alpha_limits_rad=(alpha_limits[0], alpha_limits[1]),
+            beta_limits_rad=(beta_limits[0], beta_limits[1]),
+            datum_rad=datum,
+            tolerance_mm=_number(motion, "tolerance_mm", where_m),
+            capsules=tuple(capsules),
+            sources={str(k): str(v) for k, v in sources.items()},
+            planner_defaults=copy.deepcopy(dict(defaults)),
+            spec=copy.deepcopy(data),
+        )
+        check_instrument(instrument)
+        return instrument
+    except InstrumentError as e:
+        if str(e).startswith(origin):
+            raise
+        raise InstrumentError(f"{origin}: {e}") from e
