@@ -13,8 +13,13 @@ from fiberplan.generate import make_scenario
 from fiberplan.instrument_io import load_instrument
 from fiberplan.metrics import summarize
 from fiberplan.planners import make_settings, plan
-from fiberplan.planners.mpc import MpcSettings, _SafetyLayer, outranks, route_path, straight_path, waiting_configuration
-from fiberplan.planners.mpc_qp import STATUS_FAILED, STATUS_SOLVED, OsqpOptions, PositionerQP, QpData, QpLayout, QpWeights
+from fiberplan.kinematics import straight_path
+from fiberplan.planners.mpc import MpcSettings
+from fiberplan.planners.mpc.priority import outranks
+from fiberplan.planners.mpc.routes import route_path
+from fiberplan.planners.mpc.waiting import waiting_configuration
+from fiberplan.planners.safety import SafetyLayer
+from fiberplan.planners.mpc.qp import STATUS_FAILED, STATUS_SOLVED, OsqpOptions, PositionerQP, QpData, QpLayout, QpWeights
 from fiberplan.verify import verify
 
 WEIGHTS = QpWeights(tracking=1.0, terminal=5.0, input=0.01, input_change=0.02, slack_quadratic=10.0)
@@ -192,7 +197,7 @@ def test_osqp_matrices_match_cvxpy_oracle(max_input_change):
 
 def test_osqp_matches_cvxpy_on_planner_conflicts(monkeypatch):
     """Conflict situations sampled from a real run give the same optimum as the oracle."""
-    from fiberplan.planners import mpc_exec
+    from fiberplan.planners.mpc import executors as mpc_exec
 
     captured = []
     original = mpc_exec._Block.solve
@@ -233,7 +238,7 @@ def test_qpsolvers_backend_clarabel():
     assert result.stats["qp_solves"] > 0
     assert result.stats["qp_failures"] == 0
     # Same QP through both paths: the same first step.
-    from fiberplan.planners.mpc_qp import solve_with_qpsolvers
+    from fiberplan.planners.mpc.qp import solve_with_qpsolvers
 
     layout = QpLayout(6, 3, WEIGHTS, None)
     data = _random_data(np.random.default_rng(3), layout)
@@ -245,7 +250,7 @@ def test_qpsolvers_backend_clarabel():
 
 # ----------------------------------------------------------------------------- failures
 def test_forced_osqp_failures_keep_the_plan_safe(monkeypatch):
-    from fiberplan.planners import mpc_qp
+    from fiberplan.planners.mpc import qp as mpc_qp
 
     def failing_solve(self, q, lo, hi, ax):
         return STATUS_FAILED, None, 0
@@ -355,8 +360,8 @@ def test_safety_layer_lets_a_pair_in_near_contact_part():
     settings = make_settings("mpc", sc)
     pair = np.array([[257, 297]])
     q = sc.start.copy()
-    bisecting = _SafetyLayer(sc, settings.safety_margin_mm)
-    coarse = _SafetyLayer(sc, settings.safety_margin_mm, bisections=0)
+    bisecting = SafetyLayer(sc, settings.safety_margin_mm)
+    coarse = SafetyLayer(sc, settings.safety_margin_mm, bisections=0)
     c0 = bisecting.clearance(q, pair)
     assert 0 < c0[0] < settings.safety_margin_mm
     step = sc.instrument.speeds_rad_s * settings.dt_s
@@ -375,7 +380,7 @@ def test_safety_layer_bisection_never_passes_a_step_that_dips_below_its_floor():
     # half the floor at 400 points along the step (and the floor at its end).
     sc = make_scenario("desi", 500, "random", 7)
     settings = make_settings("mpc", sc)
-    layer = _SafetyLayer(sc, settings.safety_margin_mm)
+    layer = SafetyLayer(sc, settings.safety_margin_mm)
     pair = np.array([[257, 297]])
     q = sc.start.copy()
     c0 = layer.clearance(q, pair)

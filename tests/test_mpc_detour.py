@@ -1,4 +1,4 @@
-"""Tests of the ``mpc`` planner's detours (``planners/mpc_detour.py``): grid clearances against the
+"""Tests of the ``mpc`` planner's detours (``planners/mpc/detour.py``): grid clearances against the
 exact capsule distances, routes that keep their clearance, pair resolutions whose three routes
 are clear of the other positioner, and a pair that deadlocks without detours and arrives with them."""
 
@@ -9,8 +9,11 @@ import pytest
 
 from fiberplan.generate import make_scenario
 from fiberplan.planners import make_settings, plan
-from fiberplan.planners.mpc import _path_clearance
-from fiberplan.planners.mpc_detour import _clearance_to, _densify, _Grid, detour_route, pair_resolution
+from fiberplan.planners.mpc.waiting import path_clearance as _path_clearance
+from fiberplan.planners.mpc.detour import DetourGrid as _Grid
+from fiberplan.planners.mpc.detour import detour_route, pair_resolution
+from fiberplan.planners.mpc.grid import clearance_to as _clearance_to
+from fiberplan.planners.mpc.grid import densify as _densify
 from fiberplan.scenario import Scenario, _replace
 from fiberplan.verify import verify
 

@@ -10,7 +10,7 @@ from fiberplan.generate import make_scenario
 from fiberplan.geometry import clearance_between
 from fiberplan.metrics import arrival_times, lower_bound_s
 from fiberplan.planners import make_settings, plan
-from fiberplan.planners.mpc_schedule import space_time_path, start_schedule, timed_waypoints
+from fiberplan.planners.mpc.schedule import space_time_path, start_schedule, timed_waypoints
 from fiberplan.verify import verify
 
 

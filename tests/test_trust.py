@@ -19,7 +19,7 @@ import pytest
 
 import fiberplan as fp
 from fiberplan.errors import FiberplanError, InstrumentError, OutputError, PlannerError, ScenarioError, SettingsError
-from fiberplan.planners import mpc_qp
+from fiberplan.planners.mpc import qp as mpc_qp
 from fiberplan.trajectory import PlanResult, Trajectory
 
 

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from fiberplan.kinematics import fiber_positions, move_times
+from fiberplan.outcomes import count
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult, RunFile, Trajectory
 from fiberplan.verify import VerificationReport
@@ -83,7 +84,11 @@ def _summarize(result: PlanResult | RunFile, report: VerificationReport | None) 
     makespan = float(np.nanmax(arrived)) if len(arrived) else float("nan")
     bound = lower_bound_s(scenario)
     paths = path_lengths_mm(scenario, trajectory)
-    counts = {name: int(np.sum(result.outcome == name)) for name in ("reached", "deadlocked", "failed")}
+    counts = count(np.asarray(result.outcome))
+    # Held / displaced from the trajectory itself: no target, and ending within tolerance of the start or not.
+    start_xy = fiber_positions(scenario.instrument, scenario.base_xy, scenario.orient, scenario.start)
+    final_xy = fiber_positions(scenario.instrument, scenario.base_xy, scenario.orient, trajectory.joints[-1])
+    moved = ~(np.linalg.norm(final_xy - start_xy, axis=-1) <= scenario.instrument.tolerance_mm)
     summary: dict[str, Any] = {
         "planner": result.planner,
         "instrument": scenario.instrument.name,
@@ -92,10 +97,12 @@ def _summarize(result: PlanResult | RunFile, report: VerificationReport | None) 
         "seed": scenario.seed,
         "reached": int(reached.sum()),
         "targets": n_targets,
-        "held": int(scenario.n_positioners - n_targets),
+        "held": int(np.sum(~scenario.has_target & ~moved)),
         "success_rate": float(reached.sum() / n_targets) if n_targets else 1.0,
         "deadlocked": counts["deadlocked"],
+        "unfinished": counts["unfinished"],
         "failed": counts["failed"],
+        "displaced": int(np.sum(~scenario.has_target & moved)),
         "makespan_s": makespan,
         "lower_bound_s": bound,
         "makespan_over_bound": makespan / bound if bound > 0 else float("nan"),

@@ -17,7 +17,7 @@ HDF5 layout (``format = "fiberplan-trajectory"``, version 1), readable with plai
     /positioners/has_target  (N,)      bool
     /trajectory/time_s       (T,)      float64
     /trajectory/joints_rad   (T, N, 2) float64   (time, positioner, joint)
-    /outcome/status          (N,)      ASCII: reached | deadlocked | failed
+    /outcome/status          (N,)      ASCII: an outcome of fiberplan.outcomes (reached, deadlocked, ...)
     /planner                 attrs: name, settings_json, stats_json, plan_wall_s, warnings_json
 
 Files are written under a temporary name and renamed into place when complete.
@@ -36,11 +36,12 @@ import numpy as np
 
 from fiberplan._atomic import atomic_path
 from fiberplan.errors import FiberplanError, PlannerError, TrajectoryError, TrajectoryFileError
+from fiberplan.outcomes import OUTCOMES
 from fiberplan.scenario import Scenario, scenario_from_dict
 
 FORMAT_NAME = "fiberplan-trajectory"
 FORMAT_VERSION = 1
-OUTCOMES = ("reached", "deadlocked", "failed")
+
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,8 +102,8 @@ class PlanResult:
     Attributes:
         scenario: the planned scenario.
         trajectory: the motion of every positioner.
-        outcome: ``(N,)`` the planner's own verdict per positioner: ``reached``,
-            ``deadlocked`` or ``failed`` (the verifier and metrics recompute what they need).
+        outcome: ``(N,)`` the planner's own verdict per positioner, in the vocabulary of
+            :mod:`fiberplan.outcomes` (the verifier and metrics recompute what they need).
         planner: registry name of the planner.
         settings: the settings used (JSON-serialisable).
         stats: planner statistics (JSON-serialisable): solver calls, failures, timings.

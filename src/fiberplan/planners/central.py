@@ -47,6 +47,7 @@ from fiberplan.errors import PlannerError, SettingsError
 from fiberplan.geometry import pair_clearance, segment_distance
 from fiberplan.instrument import Instrument
 from fiberplan.kinematics import move_times
+from fiberplan.outcomes import outcome_labels
 from fiberplan.planners import ProgressCallback
 from fiberplan.scenario import Scenario
 from fiberplan.settings import check_settings, setting
@@ -674,7 +675,7 @@ def _hold_result(scenario: Scenario, settings: CentralSettings, stats: dict[str,
     return PlanResult(
         scenario=scenario,
         trajectory=Trajectory(np.array([0.0, settings.output_dt_s]), joints),
-        outcome=np.where(at_target, "reached", "failed"),
+        outcome=outcome_labels(scenario, scenario.start, np.zeros(scenario.n_positioners, dtype=bool), failed=~at_target),
         planner="central",
         settings=_settings_dict(settings),
         stats=stats,
@@ -704,7 +705,7 @@ def _to_result(problem: _Problem, cand: Candidate, stats: dict[str, Any]) -> Pla
     joints = np.clip(joints, lim[:, 0], lim[:, 1])
     joints[0] = sc.start
     joints[-1] = sc.target
-    outcome = np.full(sc.n_positioners, "reached" if cand.converged else "failed")
+    outcome = outcome_labels(sc, joints[-1], np.zeros(sc.n_positioners, dtype=bool), failed=np.full(sc.n_positioners, not cand.converged))
     return PlanResult(
         scenario=sc,
         trajectory=Trajectory(times, joints),

@@ -27,7 +27,7 @@ printed method) a pair blocked for a shorter window is resolved by a temporary s
 lower-priority member folds its beta arm for a while, as positioner 5 backs away in reference
 002, fig. 5. The run stops when every positioner sits exactly on its
 target joints or can make no more progress, or at the time limit (positioners still moving
-then are ``failed``).
+then are ``unfinished``).
 """
 
 from __future__ import annotations
@@ -41,10 +41,12 @@ from typing import Any, Literal
 import numpy as np
 
 from fiberplan.errors import PlannerError
-from fiberplan.geometry import clearance_between, pair_clearance
+from fiberplan.geometry import pair_clearance
 from fiberplan.instrument import Instrument
 from fiberplan.kinematics import fiber_jacobian, fiber_positions, move_times
+from fiberplan.outcomes import outcome_labels
 from fiberplan.planners import ProgressCallback, instrument_defaults
+from fiberplan.planners.safety import HalvingStats, halve_steps, motion_bound, point_extents
 from fiberplan.scenario import Scenario
 from fiberplan.settings import check_settings, check_step_budget, setting
 from fiberplan.trajectory import PlanResult, Trajectory
@@ -441,7 +443,7 @@ class _ClearanceBound:
     envelope margin exert no repulsion and need no exact evaluation.
     """
 
-    def __init__(self, pairs: np.ndarray, n: int, rho: tuple[float, float]) -> None:
+    def __init__(self, pairs: np.ndarray, n: int, rho: np.ndarray) -> None:
         self.pairs = pairs
         self.rho = rho
         self.c_ref = np.full(len(pairs), -np.inf)
@@ -456,7 +458,7 @@ class _ClearanceBound:
         self.s_ref[rows] = self.cum[self.pairs[rows, 0]] + self.cum[self.pairs[rows, 1]]
 
     def moved(self, step: np.ndarray) -> None:
-        self.cum += self.rho[0] * np.abs(step[:, 0]) + self.rho[1] * np.abs(step[:, 1])
+        self.cum += motion_bound(self.rho, step)
 
 
 def _repulsion_gradient(
@@ -514,69 +516,7 @@ def _repulsion_gradient(
 # Safety layer
 
 
-@dataclass
-class _SafetyStats:
-    interventions: int = 0
-    held: int = 0
-    iterations: int = 0
-
-
-def _safe_steps(
-    scenario: Scenario,
-    pairs: np.ndarray,
-    joints: np.ndarray,
-    step: np.ndarray,
-    clear0: np.ndarray,
-    settings: DnfSettings,
-    rho: tuple[float, float],
-    stats: _SafetyStats,
-) -> np.ndarray:
-    """Shorten steps so that every pair stays provably apart over the whole step.
-
-    Over a linear joint move a capsule point moves at most ``M_i = rho_a |da| + rho_b |db|``,
-    and a pair's clearance is 1-Lipschitz in its points, so along the step
-
-    .. math:: c(s) \\ge \\max(c_0 - s B, c_1 - (1 - s) B) \\ge (c_0 + c_1 - B) / 2, \\quad B = M_i + M_j.
-
-    A pair passes when ``c_1 >= min(eps, c_0)`` and ``c_0 + c_1 >= (1 + eta) B + 2 min(eps, c_0)``.
-    The steps of both positioners of a failing pair are halved; after ``max_halvings``
-    halvings they are held (zero step), which a pair that was safe always passes.
-    """
-    if len(pairs) == 0:
-        return step
-    inst = scenario.instrument
-    eps, eta = settings.safety_margin_mm, settings.safety_motion_factor
-    motion_full = rho[0] * np.abs(step[:, 0]) + rho[1] * np.abs(step[:, 1])
-    bound_full = motion_full[pairs[:, 0]] + motion_full[pairs[:, 1]]
-    floor0 = np.minimum(eps, np.maximum(clear0, 0.0))
-    # A pair can fail only if 2 c0 - B < (1 + eta) B + 2 floor, whatever the scaling.
-    risky = np.flatnonzero((bound_full > 0) & (2.0 * clear0 < (2.0 + eta) * bound_full + 2.0 * floor0))
-    if len(risky) == 0:
-        return step
-    scale = np.ones(len(joints))
-    min_scale = 0.5**settings.max_halvings
-    sub = pairs[risky]
-    c0 = clear0[risky]
-    f0 = floor0[risky]
-    ii, jj = sub[:, 0], sub[:, 1]
-    base_i, base_j = scenario.base_xy[ii], scenario.base_xy[jj]
-    orient_i, orient_j = scenario.orient[ii], scenario.orient[jj]
-    while True:
-        stats.iterations += 1
-        qi = joints[ii] + scale[ii, None] * step[ii]
-        qj = joints[jj] + scale[jj, None] * step[jj]
-        c1 = clearance_between(inst, base_i, orient_i, qi, base_j, orient_j, qj).min(axis=1)
-        bound = scale[ii] * motion_full[ii] + scale[jj] * motion_full[jj]
-        bad = (bound > 0) & ((c1 < f0) | (c0 + c1 < (1.0 + eta) * bound + 2.0 * f0))
-        if not np.any(bad):
-            break
-        stats.interventions += int(bad.sum())
-        who = np.unique(np.concatenate([ii[bad], jj[bad]]))
-        who = who[scale[who] > 0]
-        halved = scale[who] * 0.5
-        scale[who] = np.where(halved < min_scale, 0.0, halved)
-    stats.held += int(np.sum(scale == 0.0))
-    return step * scale[:, None]
+# The safety layer is fiberplan.planners.safety.halve_steps.
 
 
 # ---------------------------------------------------------------------------------------------
@@ -700,8 +640,8 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
     Returns:
         The trajectory (samples every ``dt_s`` from 0), per-positioner outcome
         (``reached``: within the instrument's tolerance at the end; ``deadlocked``: not, and no
-        progress over ``deadlock_window_s``; ``failed``: not, and still progressing at the time
-        limit) and statistics (steps, retreats, safety-layer interventions, timings, whether
+        progress over ``deadlock_window_s``; ``unfinished``: not, and still progressing at the time
+        limit; ``held`` / ``displaced``: no target, ending where it started or not) and statistics (steps, retreats, safety-layer interventions, timings, whether
         reference 000's eq. 5 holds for the settings).
     """
     t_wall = time.perf_counter()
@@ -711,7 +651,7 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
     speeds = inst.speeds_rad_s
     lim = inst.limits_rad
     rho_reach = inst.reach_max_mm
-    rho_motion = (inst.alpha_point_extent_mm, inst.beta_point_extent_mm)
+    rho_motion = point_extents(inst)
     target = scenario.target
     target_xy = scenario.target_xy
     model = _pair_model(scenario, settings)
@@ -739,7 +679,7 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
     )
     stuck = np.zeros(n, dtype=bool)
     stuck_ever = np.zeros(n, dtype=bool)
-    safety = _SafetyStats()
+    safety = HalvingStats()
     culling = _ClearanceBound(pairs, n, rho_motion)
     repulsion_active_steps = 0
     one_step = dt * speeds * (1.0 - 1e-9)
@@ -772,7 +712,8 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
             step[bad_step] = 0.0
             non_finite_steps += int(bad_step.sum())
         t1 = time.perf_counter()
-        step = _safe_steps(scenario, pairs, q, step, clear0, settings, rho_motion, safety)
+        step = halve_steps(scenario, pairs, q, step, clear0, settings.safety_margin_mm, settings.safety_motion_factor,
+                           settings.max_halvings, rho_motion, safety)
         t2 = time.perf_counter()
         t_grad += t1 - t0
         t_safe += t2 - t1
@@ -812,7 +753,7 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
             break
 
     reached = err <= tol
-    outcome = np.where(reached, "reached", np.where(stuck, "deadlocked", "failed"))
+    outcome = outcome_labels(scenario, q, stuck)
     joints = np.stack(history)
     times = np.arange(len(joints)) * dt
     if progress is not None:
@@ -826,7 +767,7 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
         "deadlock_window_steps": window,
         "n_reached": int(reached.sum()),
         "n_deadlocked": int(np.sum(outcome == "deadlocked")),
-        "n_failed": int(np.sum(outcome == "failed")),
+        "n_unfinished": int(np.sum(outcome == "unfinished")),
         "n_ever_stuck": int(stuck_ever.sum()),
         "non_finite_steps_held": non_finite_steps,
         "retreats": escape.started,
@@ -847,7 +788,7 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
     if short:
         warnings.append(
             f"dnf: {short} of {int(scenario.has_target.sum())} positioners did not reach their targets "
-            f"({stats['n_deadlocked']} deadlocked, {stats['n_failed']} still moving at the time limit of {time_limit:.2f} s)"
+            f"({stats['n_deadlocked']} deadlocked, {stats['n_unfinished']} still moving at the time limit of {time_limit:.2f} s)"
         )
     if non_finite_steps:
         warnings.append(f"dnf: {non_finite_steps} non-finite step(s) were held (a positioner at a singular configuration)")

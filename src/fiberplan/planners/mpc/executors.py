@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from fiberplan.errors import PlannerError
-from fiberplan.planners.mpc_qp import (
+from fiberplan.planners.mpc.qp import (
     STATUS_ERROR,
     USABLE,
     OsqpOptions,
@@ -36,7 +36,7 @@ class QpBatch:
     """QP data of ``m`` positioners for one control step (arrays stacked over positioners).
 
     ``index`` holds the positioner rows; the other arrays are the fields of
-    :class:`~fiberplan.planners.mpc_qp.QpData` with a leading ``m`` axis.
+    :class:`~fiberplan.planners.mpc.qp.QpData` with a leading ``m`` axis.
     """
 
     index: np.ndarray
@@ -69,7 +69,7 @@ class QpBatch:
 
 @dataclass
 class QpBatchResult:
-    """Solutions of a batch: status (``mpc_qp.STATUS_*``), plans (NaN unless usable), timings,
+    """Solutions of a batch: status (``qp.STATUS_*``), plans (NaN unless usable), timings,
     and the first backend exception seen (``type: message``), if any."""
 
     status: np.ndarray

@@ -10,9 +10,7 @@ neighbours held still (prioritised planning, one positioner at a time):
   the one that goes first, and for the other a waiting place off that route from which it can
   still reach its own target once the first has arrived, with routes to and from it.
 
-Joint motion is counted in full-speed steps and a grid cell is ``cell_steps`` steps on each
-joint, so one grid move (axis or diagonal) takes the same time and breadth-first search finds
-time-shortest routes on the grid. A cell is free when its clearance is at least ``clear_mm``
+On the grid of :mod:`fiberplan.planners.mpc.grid` (``cell_steps`` full steps per cell), a cell is free when its clearance is at least ``clear_mm``
 plus half the motion bound of a diagonal move, so the clearance along every grid move is at
 least ``clear_mm`` (half the sum of the end clearances minus the motion bound, the bound the
 safety layer uses). See ``formulations/mpc.md`` (Deadlocks).
@@ -25,70 +23,26 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fiberplan.geometry import capsule_segments, capsule_tables, clearance_between, point_to_segment, segment_distance
+from fiberplan.geometry import capsule_segments, capsule_tables, point_to_segment, segment_distance
+from fiberplan.planners.mpc.grid import JointGrid, clearance_to, cross_clearance, densify
 from fiberplan.scenario import Scenario
 
-__all__ = ["PairResolution", "detour_route", "dilate", "pair_resolution"]
+__all__ = ["DetourGrid", "PairResolution", "detour_route", "pair_resolution"]
 
 
-def _cross_clearance(scenario: Scenario, i: int, configs: np.ndarray, others: np.ndarray, q_others: np.ndarray) -> np.ndarray:
-    """Clearance ``(K, M)`` of positioner ``i`` at each of ``configs`` (K, 2) to each of ``others`` (M) at ``q_others`` (M, 2)."""
-    k, m = len(configs), len(others)
-    c = clearance_between(
-        scenario.instrument,
-        np.broadcast_to(scenario.base_xy[i], (k * m, 2)), np.full(k * m, scenario.orient[i]), np.repeat(configs, m, axis=0),
-        scenario.base_xy[np.tile(others, k)], scenario.orient[np.tile(others, k)], np.tile(q_others, (k, 1)),
-    ).min(axis=-1)
-    return c.reshape(k, m)
-
-
-def _clearance_to(scenario: Scenario, i: int, configs: np.ndarray, others: np.ndarray, q_others: np.ndarray) -> np.ndarray:
-    """Smallest clearance of positioner ``i`` at each of ``configs`` (K, 2) to ``others`` held at ``q_others``."""
-    if len(others) == 0:
-        return np.full(len(configs), np.inf)
-    return _cross_clearance(scenario, i, configs, others, q_others).min(axis=1)
-
-
-def dilate(mask: np.ndarray) -> np.ndarray:
-    """Cells of a 2-D mask and their 8 neighbours (one grid move in any direction)."""
-    grow = mask.copy()
-    grow[1:] |= mask[:-1]
-    grow[:-1] |= mask[1:]
-    grow[:, 1:] |= grow[:, :-1].copy()
-    grow[:, :-1] |= grow[:, 1:].copy()
-    return grow
-
-
-def _densify(waypoints: np.ndarray, spacing: np.ndarray) -> np.ndarray:
-    """Points along the straight joint-space segments between ``waypoints``, at most ``spacing`` apart per joint."""
-    pts = [waypoints[:1]]
-    for a, b in itertools.pairwise(waypoints):
-        n = int(np.ceil(np.max(np.abs(b - a) / spacing, initial=0.0)))
-        if n:
-            t = np.arange(1, n + 1)[:, None] / n
-            pts.append(a + t * (b - a))
-    return np.concatenate(pts)
-
-
-class _Grid:
-    """The joint-configuration grid of one positioner, covering its hard stops, with its capsules
-    placed at every cell once."""
+class DetourGrid(JointGrid):
+    """The joint grid of one positioner over its whole range, with the clearances of its cells to
+    neighbours held still (kept per obstacle configuration, as the same neighbours are met again)."""
 
     def __init__(self, scenario: Scenario, i: int, step_rad: np.ndarray, clear_mm: float, end_clear_mm: float,
                  cell_steps: float = 2.0, end_cells: int = 3) -> None:
         inst = scenario.instrument
-        self.scenario, self.i, self.step_rad = scenario, i, step_rad
-        self.lo = inst.limits_rad[:, 0]
-        self.cell = cell_steps * step_rad
+        cell = cell_steps * step_rad
+        super().__init__(scenario, i, cell, *JointGrid.over_stops(scenario, cell))
+        self.step_rad = step_rad
         rho = np.array([inst.alpha_point_extent_mm, inst.beta_point_extent_mm])
         self.threshold = clear_mm + 0.5 * float(rho @ self.cell)
         self.end_clear_mm, self.end_cells = end_clear_mm, end_cells
-        span = inst.limits_rad[:, 1] - self.lo
-        self.shape = tuple(int(np.floor(span[k] / self.cell[k])) + 1 for k in range(2))
-        axes = [self.lo[k] + np.arange(self.shape[k]) * self.cell[k] for k in range(2)]
-        self.configs = np.stack(np.meshgrid(axes[0], axes[1], indexing="ij"), axis=-1).reshape(-1, 2)
-        start, end = capsule_segments(inst, scenario.base_xy[[i]], scenario.orient[[i]], self.configs[:, None, :])
-        self.seg_start, self.seg_end = start[:, 0], end[:, 0]  # (cells, C, 2)
         self._memo: dict[tuple[int, float, float, float], np.ndarray] = {}  # (j, q_j, cutoff) -> clearances
         ca = capsule_tables(inst)[3][:, 0]
         a = self.seg_start[:, ca]  # (cells, K, 2): i's capsule of each same-layer combination
@@ -140,7 +94,7 @@ class _Grid:
         """Free cells near ``q`` joined to it by a straight segment with enough clearance: (K, 2) indices.
 
         The segment needs ``end_clear_mm``, or half the clearance at ``q`` when that is less."""
-        floor = min(self.end_clear_mm, 0.5 * float(_clearance_to(self.scenario, self.i, q[None, :], others, q_others)[0]))
+        floor = min(self.end_clear_mm, 0.5 * float(clearance_to(self.scenario, self.i, q[None, :], others, q_others)[0]))
         centre = np.round((q - self.lo) / self.cell).astype(int)
         offs = np.arange(-self.end_cells, self.end_cells + 1)
         idx = np.stack(np.meshgrid(offs, offs, indexing="ij"), axis=-1).reshape(-1, 2) + centre
@@ -151,62 +105,25 @@ class _Grid:
         # Nearest first (in steps): of equally good cells, the one nearest q is taken.
         pts = self.lo + idx * self.cell
         idx = idx[np.argsort(np.max(np.abs(pts - q) / self.step_rad, axis=1), kind="stable")]
-        segs = [_densify(np.array([q, p]), 0.5 * self.step_rad) for p in self.lo + idx * self.cell]
-        c = _clearance_to(self.scenario, self.i, np.concatenate(segs), others, q_others)
+        segs = [densify(np.array([q, p]), 0.5 * self.step_rad) for p in self.lo + idx * self.cell]
+        c = clearance_to(self.scenario, self.i, np.concatenate(segs), others, q_others)
         bounds = np.cumsum([0] + [len(s) for s in segs])
         ok = np.array([c[a:b].min() >= floor for a, b in itertools.pairwise(bounds)])
         return idx[ok]
 
-    def search(self, free: np.ndarray, sources: np.ndarray, targets: np.ndarray | None = None) -> np.ndarray:
-        """Breadth-first search over free cells from ``sources`` (8-connected, one wave front per
-        move): steps from the nearest source, -1 where unreachable. Stops early once a cell of
-        ``targets`` (a mask) is reached."""
-        dist = np.full(self.shape, -1, dtype=np.int64)
-        front = np.zeros(self.shape, dtype=bool)
-        front[sources[:, 0], sources[:, 1]] = True
-        d = 0
-        while front.any():
-            dist[front] = d
-            if targets is not None and np.any(front & targets):
-                break
-            front = dilate(front) & free & (dist < 0)
-            d += 1
-        return dist
-
-    def waypoints(self, dist: np.ndarray, cell: tuple[int, int], reverse: bool = False) -> np.ndarray:
-        """Joint waypoints of a shortest search path from a source to ``cell`` (``reverse``: from
-        ``cell`` toward the source), keeping only the cells where the direction changes. The
-        path steps down the distance map; ties go to the first of the 8 moves in a fixed order."""
-        moves = [(da, db) for da in (-1, 0, 1) for db in (-1, 0, 1) if da or db]
-        cells = [cell]
-        a, b = cell
-        while dist[a, b] > 0:
-            for da, db in moves:
-                x, y = a + da, b + db
-                if 0 <= x < self.shape[0] and 0 <= y < self.shape[1] and dist[x, y] == dist[a, b] - 1:
-                    a, b = x, y
-                    break
-            cells.append((a, b))
-        path = np.array(cells if reverse else cells[::-1])
-        if len(path) > 2:
-            d = np.diff(path, axis=0)
-            turn = np.any(d[1:] != d[:-1], axis=1)
-            path = np.concatenate([path[:1], path[1:-1][turn], path[-1:]])
-        return self.lo + path * self.cell
-
 
 def _grid(scenario: Scenario, i: int, step_rad: np.ndarray, clear_mm: float, end_clear_mm: float, cell_steps: float,
-          cache: dict[int, _Grid] | None) -> _Grid:
+          cache: dict[int, DetourGrid] | None) -> DetourGrid:
     """Positioner ``i``'s grid, from ``cache`` when given (one planning run: same settings)."""
     if cache is not None and i in cache:
         return cache[i]
-    grid = _Grid(scenario, i, step_rad, clear_mm, end_clear_mm, cell_steps)
+    grid = DetourGrid(scenario, i, step_rad, clear_mm, end_clear_mm, cell_steps)
     if cache is not None:
         cache[i] = grid
     return grid
 
 
-def _route(grid: _Grid, free: np.ndarray, q_from: np.ndarray, q_to: np.ndarray, others: np.ndarray, q_others: np.ndarray) -> np.ndarray | None:
+def _route(grid: DetourGrid, free: np.ndarray, q_from: np.ndarray, q_to: np.ndarray, others: np.ndarray, q_others: np.ndarray) -> np.ndarray | None:
     starts, goals = grid.ends(q_from, free, others, q_others), grid.ends(q_to, free, others, q_others)
     if len(starts) == 0 or len(goals) == 0:
         return None
@@ -222,7 +139,7 @@ def _route(grid: _Grid, free: np.ndarray, q_from: np.ndarray, q_to: np.ndarray, 
 
 def detour_route(
     scenario: Scenario, i: int, q_from: np.ndarray, q_to: np.ndarray, others: np.ndarray, q_others: np.ndarray,
-    step_rad: np.ndarray, clear_mm: float, end_clear_mm: float, cell_steps: float = 2.0, cache: dict[int, _Grid] | None = None,
+    step_rad: np.ndarray, clear_mm: float, end_clear_mm: float, cell_steps: float = 2.0, cache: dict[int, DetourGrid] | None = None,
 ) -> np.ndarray | None:
     """Waypoints ``(W, 2)`` (the last one ``q_to``) leading positioner ``i`` from ``q_from`` to ``q_to``
     around ``others`` held at ``q_others`` (one row per obstacle configuration), or ``None``.
@@ -252,7 +169,7 @@ class PairResolution:
 
 def pair_resolution(
     scenario: Scenario, first: int, waiter: int, q: np.ndarray, goal: np.ndarray, neighbours: list[np.ndarray],
-    step_rad: np.ndarray, clear_mm: float, end_clear_mm: float, cell_steps: float = 2.0, cache: dict[int, _Grid] | None = None,
+    step_rad: np.ndarray, clear_mm: float, end_clear_mm: float, cell_steps: float = 2.0, cache: dict[int, DetourGrid] | None = None,
 ) -> PairResolution | None:
     """A waiting place for ``waiter`` that lets ``first`` reach its target, or ``None``.
 
@@ -295,12 +212,12 @@ def pair_resolution(
         return None
     score = d_from.ravel()[reach] * 4 + d_to.ravel()[reach]
     reach = reach[np.argsort(score, kind="stable")]
-    path = _densify(np.vstack([q[first], first_route]), w_grid.cell)
+    path = densify(np.vstack([q[first], first_route]), w_grid.cell)
     need = thr + (thr - clear_mm)
     found = None
     for chunk in range(0, len(reach), 256):
         cand = reach[chunk:chunk + 256]
-        c_route = _cross_clearance(scenario, waiter, w_grid.configs[cand], np.full(len(path), first), path).min(axis=1)
+        c_route = cross_clearance(scenario, waiter, w_grid.configs[cand], np.full(len(path), first), path).min(axis=1)
         good = np.flatnonzero(c_route >= need)
         if len(good):
             found = cand[good[0]]
