@@ -11,15 +11,15 @@ import pytest
 from fiberplan.errors import PlannerError
 from fiberplan.generate import make_scenario
 from fiberplan.instrument_io import load_instrument
+from fiberplan.kinematics import straight_path
 from fiberplan.metrics import summarize
 from fiberplan.planners import make_settings, plan
-from fiberplan.kinematics import straight_path
 from fiberplan.planners.mpc import MpcSettings
 from fiberplan.planners.mpc.priority import outranks
+from fiberplan.planners.mpc.qp import STATUS_FAILED, STATUS_SOLVED, OsqpOptions, PositionerQP, QpData, QpLayout, QpWeights
 from fiberplan.planners.mpc.routes import route_path
 from fiberplan.planners.mpc.waiting import waiting_configuration
 from fiberplan.planners.safety import SafetyLayer
-from fiberplan.planners.mpc.qp import STATUS_FAILED, STATUS_SOLVED, OsqpOptions, PositionerQP, QpData, QpLayout, QpWeights
 from fiberplan.verify import verify
 
 WEIGHTS = QpWeights(tracking=1.0, terminal=5.0, input=0.01, input_change=0.02, slack_quadratic=10.0)

@@ -9,11 +9,11 @@ import pytest
 
 from fiberplan.generate import make_scenario
 from fiberplan.planners import make_settings, plan
-from fiberplan.planners.mpc.waiting import path_clearance as _path_clearance
 from fiberplan.planners.mpc.detour import DetourGrid as _Grid
 from fiberplan.planners.mpc.detour import detour_route, pair_resolution
 from fiberplan.planners.mpc.grid import clearance_to as _clearance_to
 from fiberplan.planners.mpc.grid import densify as _densify
+from fiberplan.planners.mpc.waiting import path_clearance as _path_clearance
 from fiberplan.scenario import Scenario, _replace
 from fiberplan.verify import verify
 
