@@ -108,7 +108,8 @@ def _parse_settings(pairs: Sequence[str]) -> dict[str, Any]:
 
 _SUMMARY_KEYS = (
     "planner", "instrument", "scenario_kind", "n_positioners", "seed", "targets", "reached", "success_rate", "held",
-    "deadlocked", "unfinished", "failed", "displaced", "collisions", "limit_violations", "makespan_s", "lower_bound_s", "makespan_over_bound", "plan_wall_s",
+    "deadlocked", "unfinished", "failed", "displaced", "collisions", "limit_violations", "makespan_s", "lower_bound_s",
+    "makespan_over_bound", "plan_wall_s",
 )
 
 

@@ -28,14 +28,15 @@ from fiberplan.scenario import Scenario
 def select_conflicts(
     scenario: Scenario, settings: MpcSettings, c_now: np.ndarray, q: np.ndarray, plan: np.ndarray, goal_prev: np.ndarray,
     step_mm: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Pair rows near enough to need a look (``cand``) and those in conflict (``sel``).
+) -> np.ndarray:
+    """Rows of the pairs in conflict: near enough now to need a look, and closer than
+    ``conflict_radius_mm`` now or along the published plans.
 
     Two positioners holding still at their goals need no QP: nothing changes between them.
     """
     pairs = scenario.pairs
     if not len(pairs):
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        return np.zeros(0, dtype=np.int64)
     H = plan.shape[1]
     resting = np.all(q == goal_prev, axis=1) & np.all(plan == q[:, None, :], axis=(1, 2))
     near = c_now < settings.conflict_radius_mm + 2 * H * step_mm
@@ -45,7 +46,7 @@ def select_conflicts(
         pred = pair_clearance(scenario.instrument, scenario.base_xy, scenario.orient, np.swapaxes(plan, 0, 1), pairs[cand])
         c_min = np.minimum(c_now[cand], pred.clearance.min(axis=(0, 2)))
         sel = cand[c_min < settings.conflict_radius_mm]
-    return cand, sel
+    return sel
 
 
 def build_qp_batch(

@@ -45,6 +45,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from functools import partial
+from typing import Any
 
 import numpy as np
 
@@ -72,7 +73,6 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     n = scenario.n_positioners
     h, H = settings.dt_s, settings.horizon_steps
     step_rad = inst.speeds_rad_s * h
-    lim = inst.limits_rad
     goal_final = scenario.target.copy()
     pairs = scenario.pairs
     degree = np.bincount(pairs.ravel(), minlength=n) if len(pairs) else np.zeros(n, dtype=np.int64)
@@ -136,7 +136,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             ttg = deadlocks.track(step, q, at_goal, holding)
 
             # --- conflicts (from the configuration and the published plans), deadlocks, priorities.
-            cand, sel = select_conflicts(scenario, settings, c_now, q, plan, goal_prev, step_mm)
+            sel = select_conflicts(scenario, settings, c_now, q, plan, goal_prev, step_mm)
             stalled, new_dead = deadlocks.detect(step, q, ttg, at_goal, holding)
             deadlocks.resolve(step, q, ttg, at_goal, stalled, new_dead, c_now)
             rank, boosted = deadlocks.priorities(ttg)
@@ -146,25 +146,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # --- the reference (time-optimal toward the goal, or along the route), then the QPs.
             ref = straight_path(q, goal, step_rad, H)
             routes.reference(ref, q, unstarted, step_rad, step)
-            q_next = ref[:, 0].copy()
-            new_plan = ref.copy()
-            n_qp = 0
-            if len(cand) and len(sel):
-                batch = build_qp_batch(scenario, settings, layout, pairs[sel], margin_cap[sel], q, own_plan, plan, ref, v_prev, rank,
-                                       deadlocks.wait_first, boosted, step_rad, lim)
-                result = executor.solve(batch)
-                idx = batch.index
-                n_qp = len(idx)
-                stats.record_qps(result)
-                ok = np.isin(result.status, USABLE)
-                qplan = np.clip(q[idx, None, :] + result.z * step_rad, lim[:, 0], lim[:, 1])
-                # Executed first step: within the speed bound and the hard stops.
-                first = np.clip(q[idx] + np.clip(qplan[:, 0] - q[idx], -step_rad, step_rad), lim[:, 0], lim[:, 1])
-                # Failed solves brake: the positioner holds and publishes a hold plan.
-                q_next[idx] = np.where(ok[:, None], first, q[idx])
-                new_plan[idx] = np.where(ok[:, None, None], qplan, q[idx, None, :])
-            stats.qp_per_step.append(n_qp)
-
+            q_next, new_plan = _solve_qps(scenario, settings, layout, executor, stats, sel, margin_cap, q, own_plan, plan, ref, v_prev,
+                                          rank, deadlocks.wait_first, boosted, step_rad)
             # Snap onto the goal when within a small fraction of a step of it.
             near = np.all(np.abs(goal - q_next) <= 0.05 * step_rad, axis=1) & np.all(np.abs(goal - q) <= step_rad, axis=1)
             q_next[near] = goal[near]
@@ -201,6 +184,35 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         progress(1.0)
     return _result(scenario, settings, np.stack(history), stats, deadlocks, schedule, schedule_wall_s, start_step, n_slots,
                    stopped_stalled, step)
+
+
+def _solve_qps(
+    scenario: Scenario, settings: MpcSettings, layout: QpLayout, executor: Any, stats: RunStats, sel: np.ndarray, margin_cap: np.ndarray,
+    q: np.ndarray, own_plan: np.ndarray, plan: np.ndarray, ref: np.ndarray, v_prev: np.ndarray, rank: np.ndarray,
+    wait_first: np.ndarray, boosted: np.ndarray, step_rad: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The next configuration and the new plans: the reference for positioners in no conflict,
+    the first step of its QP's plan for each one in conflict (a failed solve holds)."""
+    lim = scenario.instrument.limits_rad
+    q_next = ref[:, 0].copy()
+    new_plan = ref.copy()
+    n_qp = 0
+    if len(sel):
+        batch = build_qp_batch(scenario, settings, layout, scenario.pairs[sel], margin_cap[sel], q, own_plan, plan, ref, v_prev, rank,
+                               wait_first, boosted, step_rad, lim)
+        result = executor.solve(batch)
+        idx = batch.index
+        n_qp = len(idx)
+        stats.record_qps(result)
+        ok = np.isin(result.status, USABLE)
+        qplan = np.clip(q[idx, None, :] + result.z * step_rad, lim[:, 0], lim[:, 1])
+        # Executed first step: within the speed bound and the hard stops.
+        first = np.clip(q[idx] + np.clip(qplan[:, 0] - q[idx], -step_rad, step_rad), lim[:, 0], lim[:, 1])
+        # Failed solves brake: the positioner holds and publishes a hold plan.
+        q_next[idx] = np.where(ok[:, None], first, q[idx])
+        new_plan[idx] = np.where(ok[:, None, None], qplan, q[idx, None, :])
+    stats.qp_per_step.append(n_qp)
+    return q_next, new_plan
 
 
 def _follow_schedule(
