@@ -1,7 +1,7 @@
 """How far are the decentralised planners from the central optimum? (issue 5, reference 004 section 7.5)
 
 For each instrument and group size, runs ``central``, ``mpc`` and ``dnf`` on the same seeded
-``hard`` scenarios (:func:`fiberplan.compare.hard_scenario`), verifies every result, and writes
+``hard`` scenarios (:func:`fiberplan.studies.hard_scenario`), verifies every result, and writes
 ``benchmarks/results/central_<instrument>_<n>.json`` with machine info, versions, date,
 parameters, per-planner aggregates (success, makespan gap to central: median and 90th
 percentile, energy gap at equal makespan, plan wall times) and every row. The file is
@@ -33,7 +33,7 @@ from typing import Any
 from _machine import machine_info
 
 from fiberplan._atomic import atomic_path
-from fiberplan.compare import HARD_KIND, add_gaps, aggregate, run_compare
+from fiberplan.studies import HARD_KIND, add_gaps, aggregate, run_compare
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -11,10 +11,10 @@ from fiberplan.errors import PlannerError
 from fiberplan.instrument_io import load_instrument
 from fiberplan.kinematics import inverse_kinematics, move_times
 from fiberplan.metrics import energy, lower_bound_s, summarize
-from fiberplan.planners import central as central_module
 from fiberplan.planners import make_settings, plan
-from fiberplan.planners.central import central_reference, solve_central
+from fiberplan.planners.central import solve_central
 from fiberplan.scenario import TARGET_JOINTS, TARGET_NONE, Scenario
+from fiberplan.studies import central_reference
 from fiberplan.trajectory import Trajectory
 from fiberplan.verify import verify
 
@@ -121,17 +121,20 @@ def test_nothing_to_move_holds_still(crossing: Scenario) -> None:
 
 def test_a_colliding_candidate_is_reported_failed(crossing: Scenario, monkeypatch: pytest.MonkeyPatch) -> None:
     """Item 2 of the issue: a central solution the verifier rejects is never returned as optimal."""
-    real = central_module.solve_central
+    import fiberplan.planners.central.solve as solve_module
+    import fiberplan.studies.reference as reference_module
+
+    real = reference_module.solve_central
 
     def colliding(*args, **kwargs):
         solution, problem = real(*args, **kwargs)
-        straight, _ = central_module._straight_guess(problem, 1.0)
+        straight, _ = solve_module._straight_guess(problem, 1.0)
         for cand in solution.candidates:
             cand.joints = straight
             cand.makespan_s = problem.lower_bound_s
         return solution, problem
 
-    monkeypatch.setattr(central_module, "solve_central", colliding)
+    monkeypatch.setattr(reference_module, "solve_central", colliding)
     result = central_reference(crossing, {"warm_start": ["sequential"]})
     assert result.stats["verified"] is False
     assert result.stats["rejected"] and result.stats["rejected"][0]["collisions"] >= 1
@@ -161,6 +164,13 @@ def test_energy_mode_below_the_bound_is_refused(crossing: Scenario) -> None:
 
 
 def test_unknown_warm_start_planner(crossing: Scenario) -> None:
-    settings = make_settings("central", crossing, {"warm_start": ["nope"]})
-    with pytest.raises(PlannerError, match="unknown planner 'nope'"):
+    with pytest.raises(PlannerError, match="warm_start 'nope' is neither a built-in start"):
+        make_settings("central", crossing, {"warm_start": ["nope"]})
+
+
+def test_warm_start_planners_are_planned_by_the_registry(crossing: Scenario) -> None:
+    settings = make_settings("central", crossing, {"warm_start": ["dnf"], "steps": 30})
+    with pytest.raises(PlannerError, match="warm start 'dnf' needs that planner's result"):
         solve_central(crossing, settings)
+    result = plan(crossing, "central", settings)  # the registry plans the dnf first
+    assert result.stats["chosen"] == "dnf" or "dnf" in [c["source"] for c in result.stats["candidates"]]

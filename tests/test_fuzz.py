@@ -142,7 +142,7 @@ def _study_case(tmp_path: Path, data: Any) -> None:
         path.write_text(tomli_w.dumps(data))
     except (TypeError, ValueError):
         return
-    from fiberplan.study import StudyError, load_study
+    from fiberplan.studies import StudyError, load_study
 
     try:
         spec = load_study(path)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from fiberplan.study import StudyError, finished_tasks, load_study, rates, run_study, wilson_interval
+from fiberplan.studies import StudyError, finished_tasks, load_study, rates, run_study, wilson_interval
 
 TIMING = ["plan_wall_s", "run_wall_s", "stat.loop_wall_s", "stat.gradient_time_s", "stat.safety_time_s", "traceback"]
 
@@ -179,7 +179,7 @@ def test_rates_group_and_pool_positioners():
 
 
 def test_dead_worker_is_retried_then_lost_and_run_again_on_resume(tmp_path, monkeypatch):
-    import fiberplan.study as study_module
+    import fiberplan.studies.sweep as study_module
 
     spec = load_study(write_spec(tmp_path, seeds=2))
     doomed = spec.tasks[1].key
@@ -193,8 +193,8 @@ def test_dead_worker_is_retried_then_lost_and_run_again_on_resume(tmp_path, monk
             os._exit(1)  # the worker process dies, as under the OOM killer
         return original(task, per_positioner)
 
-    # pickled by reference as fiberplan.study.run_task, which the forked workers see patched
-    dies_on_one_task.__module__, dies_on_one_task.__qualname__ = "fiberplan.study", "run_task"
+    # pickled by reference as fiberplan.studies.sweep.run_task, which the forked workers see patched
+    dies_on_one_task.__module__, dies_on_one_task.__qualname__ = "fiberplan.studies.sweep", "run_task"
     monkeypatch.setattr(study_module, "run_task", dies_on_one_task)
     assert run_study(spec, workers=2, progress=False) == len(spec.tasks)
     table = pd.read_parquet(spec.out).set_index("task")

@@ -139,8 +139,13 @@ def _build_scenario(
             return sc.with_instrument(inst, preset), f"{used} (replaces the scenario file's {sc.instrument.name!r})"
         return sc, f"from the scenario file ({'preset ' + sc.instrument_preset if sc.instrument_preset else 'embedded table'})"
     from fiberplan.generate import make_scenario
+    from fiberplan.studies.scenarios import HARD_KIND, hard_scenario
 
     inst, preset, used = _instrument_arg(instrument)
+    if kind == HARD_KIND:
+        if radius_mm is not None:
+            raise click.UsageError("--radius-mm does not apply to --scenario-kind hard (a hexagonal group of -n positioners)")
+        return hard_scenario(instrument, positioners, seed), used
     return make_scenario(inst, positioners, kind, seed, radius_mm=radius_mm, instrument_preset=preset), used
 
 
@@ -149,7 +154,7 @@ def _build_scenario(
 @click.option("--positioners", "-n", default=500, show_default=True, type=POSITIONERS, help="Positioners in the hexagonal patch.")
 @click.option("--radius-mm", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Lay out a full focal plane of this radius instead of a patch.")
-@click.option("--scenario-kind", default="random", show_default=True, help="random, unfold, fold or clustered.")
+@click.option("--scenario-kind", default="random", show_default=True, help="random, unfold, fold, clustered or hard.")
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the scenario generator.")
 @click.option("--scenario", "scenario_file", type=PATH, default=None, help="Plan this scenario file instead.")
 @click.option("--planner", default=DEFAULT_PLANNER, show_default=True, help="Planner name (see `fiberplan planners`).")
@@ -397,7 +402,7 @@ def sweep(spec: Path, scheduler: str | None, workers: int | None, quiet: bool) -
 
     Re-running the same command after an interruption skips the finished runs.
     """
-    from fiberplan.study import finished_tasks, load_study, run_study
+    from fiberplan.studies import finished_tasks, load_study, run_study
 
     study = load_study(spec)
     check_output_path(study.out, what=f"study {str(spec)!r}: out", suffixes=PARQUET_SUFFIXES, inputs=[spec])
@@ -425,7 +430,7 @@ def study_plot(results: Path, kind: str, x: str, by: str, rate: str, out: Path) 
     """Plot a study table: rates with error bars, plan time vs N, or makespan / lower bound."""
     check_output_path(out, what="--out", suffixes=IMAGE_SUFFIXES, inputs=[results])
     from fiberplan.plotting import plot_makespan_ratio, plot_rates, plot_scaling, save_figure
-    from fiberplan.study import StudyError, load_results, rates
+    from fiberplan.studies import StudyError, load_results, rates
 
     frame = load_results(results)
     for column in (x, by) if kind == "rates" else (by,):
@@ -463,7 +468,7 @@ def compare(
     check_output_path(out, what="--out", suffixes=PARQUET_SUFFIXES)
     from tqdm import tqdm
 
-    from fiberplan.compare import format_table, run_compare, write_parquet
+    from fiberplan.studies import format_table, run_compare, write_parquet
 
     if seed_list is not None:
         try:

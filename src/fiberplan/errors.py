@@ -45,3 +45,7 @@ class OutputError(FiberplanError, OSError):
 
 class InfrastructureError(FiberplanError, RuntimeError):
     """The machinery a sweep runs on failed (no live worker); finished results are kept."""
+
+
+class StudyError(FiberplanError, ValueError):
+    """A study file is missing, malformed, or names something unknown."""

@@ -216,7 +216,7 @@ def plot_rates(rates_frame: Any, x: str, *, hue: str | None = "planner", rate: s
     """Deadlock (or success) rate against a parameter, with Wilson-interval error bars.
 
     Args:
-        rates_frame: output of :func:`fiberplan.study.rates` grouped by ``x`` (and ``hue``).
+        rates_frame: output of :func:`fiberplan.studies.rates` grouped by ``x`` (and ``hue``).
         x: column on the horizontal axis (e.g. ``n_positioners``, ``setting.lambda_ratio``).
         hue: column separating the curves (e.g. ``planner``), or None.
         rate: ``deadlock`` or ``success``.

@@ -26,9 +26,10 @@ _PLANNERS = PLANNERS
 
 
 class PlannerFunction(Protocol):
-    """Signature every registered planner follows."""
+    """Signature every registered planner follows (``warm_results``: only for planners whose
+    settings name ``warm_planners``)."""
 
-    def __call__(self, scenario: Scenario, settings: Any, progress: ProgressCallback | None = None) -> PlanResult: ...
+    def __call__(self, scenario: Scenario, settings: Any, progress: ProgressCallback | None = None, **kwargs: Any) -> PlanResult: ...
 
 
 def instrument_defaults(instrument: Instrument, table: str, defaults: Any) -> Any:
@@ -111,7 +112,10 @@ def plan(
     func, settings_cls = _lookup(planner)
     if not isinstance(settings, settings_cls):
         settings = make_settings(planner, scenario, settings)
+    # A planner that starts from others' trajectories (``central``'s warm starts) gets them
+    # planned first, with their defaults; their wall time is not the planner's.
+    warm = [plan(scenario, name) for name in getattr(settings, "warm_planners", ())]
     t0 = time.perf_counter()
-    result = func(scenario, settings, progress)
+    result = func(scenario, settings, progress, warm_results=warm) if warm else func(scenario, settings, progress)
     wall = time.perf_counter() - t0
     return dataclasses.replace(result, plan_wall_s=wall)

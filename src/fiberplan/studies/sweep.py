@@ -47,14 +47,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
 import itertools
-import json
 import math
 import os
 import time
 import tomllib
-import traceback
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -62,11 +59,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from fiberplan._atomic import atomic_path
 from fiberplan._keys import check_keys
-from fiberplan.errors import FiberplanError, InfrastructureError
+from fiberplan.errors import FiberplanError, InfrastructureError, StudyError
+from fiberplan.studies.runner import RunSpec, empty_row, rows_frame, run_one
 
 GRID_KEYS = ("instrument", "n_positioners", "scenario_kind", "planner")
 STUDY_FILE_KEYS = ("study", "grid", "scenario", "settings")
@@ -81,52 +77,10 @@ SCENARIO_OPTIONS = ("clusters", "cluster_fraction", "random_orientation", "radiu
 """Keyword arguments of :func:`fiberplan.generate.make_scenario` a study may vary (``[scenario]``)."""
 
 
-class StudyError(FiberplanError, ValueError):
-    """A study file is missing, malformed, or names something unknown."""
 
 
-@dataclass(frozen=True)
-class Task:
-    """One run of a sweep: a grid cell and a seed."""
-
-    instrument: str
-    n_positioners: int
-    scenario_kind: str
-    planner: str
-    seed: int
-    settings: tuple[tuple[str, Any], ...] = ()
-    scenario_options: tuple[tuple[str, Any], ...] = ()
-
-    def parameters(self) -> dict[str, Any]:
-        """The run's parameters as row columns (``setting.*`` and ``scenario.*`` flattened)."""
-        return {
-            "task": self.key,
-            "instrument": self.instrument,
-            "n_positioners": self.n_positioners,
-            "scenario_kind": self.scenario_kind,
-            "planner": self.planner,
-            "seed": self.seed,
-            "settings_json": json.dumps(dict(self.settings), sort_keys=True),
-            **{f"setting.{k}": v for k, v in self.settings},
-            **{f"scenario.{k}": v for k, v in self.scenario_options},
-        }
-
-    @property
-    def key(self) -> str:
-        """Stable identifier (hash of the canonical parameters) used to resume."""
-        payload = json.dumps(
-            {
-                "instrument": self.instrument,
-                "n_positioners": self.n_positioners,
-                "scenario_kind": self.scenario_kind,
-                "planner": self.planner,
-                "seed": self.seed,
-                "settings": dict(self.settings),
-                **({"scenario": dict(self.scenario_options)} if self.scenario_options else {}),
-            },
-            sort_keys=True,
-        )
-        return hashlib.sha1(payload.encode()).hexdigest()[:16]
+Task = RunSpec
+"""One run of a sweep: a grid cell and a seed (a :class:`~fiberplan.studies.runner.RunSpec`)."""
 
 
 @dataclass(frozen=True)
@@ -164,9 +118,9 @@ def expand_grid(data: Mapping[str, Any], origin: str = "study") -> list[Task]:
             setting does not exist for its planner.
     """
     from fiberplan._keys import unknown_key_message
-    from fiberplan.generate import SCENARIO_KINDS
     from fiberplan.instrument_io import load_instrument
     from fiberplan.planners import make_settings, planner_names, settings_class
+    from fiberplan.studies.scenarios import STUDY_KINDS as SCENARIO_KINDS
 
     check_keys(data, STUDY_FILE_KEYS, origin, StudyError)
     grid = data.get("grid")
@@ -323,61 +277,24 @@ def load_study(path: str | Path) -> StudySpec:
 
 
 def run_task(task: Task, per_positioner: bool = False) -> dict[str, Any]:
-    """Run one task: generate, plan, verify, summarise. Never raises: errors become a row."""
-    row = task.parameters()
-    t0 = time.perf_counter()
-    try:
-        from fiberplan.generate import make_scenario
-        from fiberplan.metrics import arrival_times, path_lengths_mm, reached_mask, summarize
-        from fiberplan.planners import plan
-        from fiberplan.verify import verify
-
-        scenario = make_scenario(task.instrument, task.n_positioners, task.scenario_kind, task.seed, **dict(task.scenario_options))
-        result = plan(scenario, task.planner, dict(task.settings))
-        report = verify(scenario, result.trajectory)
-        summary = summarize(result, report)
-        summary.pop("planner", None)
-        summary.pop("instrument", None)
-        summary.pop("seed", None)
-        summary.pop("n_positioners", None)
-        summary.pop("scenario_kind", None)
-        row.update(summary)
-        for name, value in result.stats.items():
-            if isinstance(value, (int, float, bool, np.integer, np.floating)) and not isinstance(value, bool):
-                row[f"stat.{name}"] = float(value)
-        row["status"] = "ok"
-        row["error"] = ""
-        if per_positioner:
-            reached = reached_mask(scenario, result.trajectory)
-            row["_positioners"] = {
-                "id": scenario.ids.tolist(),
-                "outcome": result.outcome.tolist(),
-                "reached": reached.tolist(),
-                "arrival_s": arrival_times(scenario, result.trajectory).tolist(),
-                "path_length_mm": path_lengths_mm(scenario, result.trajectory).tolist(),
-            }
-    except Exception as e:  # a failing run is a result, not a crash of the sweep
-        row["status"] = "error"
-        row["error"] = f"{type(e).__name__}: {e}"
-        row["traceback"] = traceback.format_exc(limit=5)
-    row["run_wall_s"] = time.perf_counter() - t0
-    return row
+    """Run one task (:func:`~fiberplan.studies.runner.run_one`). Never raises: errors become a row."""
+    return run_one(task, per_positioner)
 
 
 def _write_part(parts_dir: Path, row: dict[str, Any]) -> None:
-    import pandas as pd
-
     positioners = row.pop("_positioners", None)
     parts_dir.mkdir(parents=True, exist_ok=True)
     lost = parts_dir / f"{row['task']}.lost.parquet"
     if row.get("status") == STATUS_LOST:  # shown in the table, but not a finished run
         with atomic_path(lost) as tmp:
-            pd.DataFrame([row]).to_parquet(tmp, index=False)
+            rows_frame([row]).to_parquet(tmp, index=False)
         return
     with atomic_path(parts_dir / f"{row['task']}.parquet") as tmp:
-        pd.DataFrame([row]).to_parquet(tmp, index=False)
+        rows_frame([row]).to_parquet(tmp, index=False)
     lost.unlink(missing_ok=True)
     if positioners is not None:
+        import pandas as pd
+
         frame = pd.DataFrame(positioners)
         frame.insert(0, "task", row["task"])
         with atomic_path(parts_dir / f"{row['task']}.positioners.parquet") as tmp:
@@ -468,11 +385,9 @@ def _local_results(tasks: Sequence[Task], per_positioner: bool, workers: int, re
 
 
 def _lost_row(task: Task, message: str) -> dict[str, Any]:
-    return {
-        **task.parameters(),
-        "status": STATUS_LOST,
-        "error": message,
-    }
+    row = empty_row(task.parameters())
+    row["status"], row["error"] = STATUS_LOST, message
+    return row
 
 
 def _live_workers(client: Any) -> int:
@@ -581,80 +496,3 @@ def run_study(
         with contextlib.suppress(Exception):
             consolidate(spec)
     return consolidate(spec)
-
-
-# ---------------------------------------------------------------------------------- analysis
-
-
-def load_results(path: str | Path) -> Any:
-    """Read a study results table (pandas DataFrame)."""
-    import pandas as pd
-
-    path = Path(path)
-    if not path.is_file():
-        raise StudyError(f"results table {str(path)!r} does not exist")
-    try:
-        return pd.read_parquet(path)
-    except Exception as e:  # pyarrow raises its own types for a file that is not Parquet
-        raise StudyError(f"results table {str(path)!r} is not a Parquet table ({type(e).__name__}: {e}); give the .parquet a sweep wrote") from e
-
-
-def wilson_interval(successes: float, trials: float, z: float = 1.96) -> tuple[float, float]:
-    r"""Wilson score interval of a binomial proportion.
-
-    .. math:: \frac{\hat p + \frac{z^2}{2n} \pm z \sqrt{\frac{\hat p (1 - \hat p)}{n} + \frac{z^2}{4 n^2}}}{1 + z^2 / n}
-    """
-    if trials <= 0:
-        return (math.nan, math.nan)
-    p = successes / trials
-    denom = 1 + z**2 / trials
-    centre = (p + z**2 / (2 * trials)) / denom
-    half = z * math.sqrt(p * (1 - p) / trials + z**2 / (4 * trials**2)) / denom
-    return (max(0.0, centre - half), min(1.0, centre + half))
-
-
-def rates(frame: Any, by: Sequence[str], z: float = 1.96) -> Any:
-    """Success and deadlock rates over positioners, with Wilson intervals, grouped by ``by``.
-
-    Counts pool every positioner with a target across the runs of a group (``reached``,
-    ``deadlocked``, ``targets`` columns); error runs are counted in ``errors`` and left out.
-    """
-    import pandas as pd
-
-    ok = frame[frame["status"] == "ok"]
-    rows = []
-    for key, group in ok.groupby(list(by), dropna=False):
-        key = key if isinstance(key, tuple) else (key,)
-        targets = float(group["targets"].sum())
-        reached = float(group["reached"].sum())
-        dead = float(group["deadlocked"].sum())
-        s_lo, s_hi = wilson_interval(reached, targets, z)
-        d_lo, d_hi = wilson_interval(dead, targets, z)
-        rows.append(
-            {
-                **dict(zip(by, key, strict=True)),
-                "runs": len(group),
-                "targets": int(targets),
-                "success_rate": reached / targets if targets else math.nan,
-                "success_lo": s_lo,
-                "success_hi": s_hi,
-                "deadlock_rate": dead / targets if targets else math.nan,
-                "deadlock_lo": d_lo,
-                "deadlock_hi": d_hi,
-                "runs_all_reached": float((group["reached"] == group["targets"]).mean()),
-                "collisions": int(group["collisions"].sum()),
-            }
-        )
-    errors = frame[frame["status"] != "ok"].groupby(list(by), dropna=False).size()
-    out = pd.DataFrame(rows)
-    if len(out):
-        out["errors"] = [int(errors.get(tuple(r[b] for b in by) if len(by) > 1 else r[by[0]], 0)) for _, r in out.iterrows()]
-    return out
-
-
-def percentiles(frame: Any, column: str, by: Sequence[str], q: Sequence[float] = (0.5, 0.9, 0.95)) -> Any:
-    """Percentiles of a metric column per group (successful runs only)."""
-    ok = frame[frame["status"] == "ok"]
-    table = ok.groupby(list(by))[column].quantile(list(q)).unstack()
-    table.columns = [f"{column}_p{round(100 * v)}" for v in q]
-    return table.reset_index()
