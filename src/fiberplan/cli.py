@@ -368,28 +368,30 @@ def instruments(name: str | None) -> None:
 @click.option("--json", "as_json", is_flag=True, help="With --settings: one JSON list.")
 def planners(settings_of: str | None, instrument: str, as_json: bool) -> None:
     """List the registered planners, or one planner's settings with their values for an instrument."""
-    from fiberplan.planners import make_settings, planner_names
-    from fiberplan.settings import describe_settings
+    from fiberplan.planners import make_settings, planner_names, settings_class
+    from fiberplan.settings import describe_settings, setting_sources
 
     if settings_of is None:
         for name in planner_names():
             click.echo(name)
         return
     inst, _, used = _instrument_arg(instrument)
-    rows = describe_settings(make_settings(settings_of, inst))
+    rows = describe_settings(make_settings(settings_of, inst), setting_sources(settings_class(settings_of), inst, settings_of))
     if as_json:
         click.echo(json.dumps(_json_ready(rows)))
         return
     click.echo(f"{settings_of} settings for instrument {inst.name} ({used}); change with --set KEY=VALUE")
+    click.echo("  (source: default = the planner's own, instrument = scaled to its motors, instrument file = [planner_defaults])")
     group = None
     width = max(len(r["name"]) for r in rows)
-    for row in sorted(rows, key=lambda r: r["group"]):
+    order = {g: k for k, g in enumerate(dict.fromkeys(r["group"] for r in rows))}
+    for row in sorted(rows, key=lambda r: order[r["group"]]):
         if row["group"] != group:
             group = row["group"]
             click.echo(f"[{group}]")
         value = json.dumps(_json_ready(row["value"]))
         unit = f" {row['unit']}" if row["unit"] else ""
-        click.echo(f"  {row['name']:<{width}}  {value}{unit}  ({row['range']}): {row['doc']}")
+        click.echo(f"  {row['name']:<{width}}  {value}{unit}  [{row['source']}] ({row['range']}): {row['doc']}")
 
 
 @cli.command()

@@ -22,6 +22,22 @@ from fiberplan.instrument import Instrument
 _EPS = 1e-12  # distances below this (mm) count as contact for gradients
 
 
+def point_extents(instrument: Instrument) -> np.ndarray:
+    """``[rho_alpha, rho_beta]``: the farthest capsule point from the base and from the elbow (mm)."""
+    return np.array([instrument.alpha_point_extent_mm, instrument.beta_point_extent_mm])
+
+
+def motion_bound(rho: np.ndarray, dq: np.ndarray) -> np.ndarray:
+    """The motion bound: farthest any capsule point moves over the linear joint moves ``dq``
+    (``(..., 2)`` rad), in mm, with ``rho`` from :func:`point_extents`.
+
+    .. math:: M = \\rho_\\alpha |\\Delta\\alpha| + \\rho_\\beta |\\Delta\\beta|
+
+    The one bound every planner, the safety layer and the verifier use.
+    """
+    return np.abs(dq) @ rho
+
+
 @functools.lru_cache(maxsize=32)
 def capsule_tables(instrument: Instrument) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-capsule arrays ``(on_alpha, start_mm, end_mm)`` and the same-layer ``combos (K, 2)``

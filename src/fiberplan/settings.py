@@ -171,8 +171,11 @@ def _check_one(planner: str, name: str, value: Any, meta: Any) -> None:
         raise SettingsError(f"{where} = {value!r}{unit} is outside its valid range {range_text(meta)}{unit}: {meta['doc']}")
 
 
-def describe_settings(settings: Any) -> list[dict[str, Any]]:
-    """One row per setting: name, value, group, unit, valid range and doc (in declaration order)."""
+def describe_settings(settings: Any, sources: dict[str, str] | None = None) -> list[dict[str, Any]]:
+    """One row per setting: name, value, where it came from, group, unit, valid range and doc.
+
+    ``sources`` names where each value came from (:func:`setting_sources`); ``"default"`` otherwise.
+    """
     rows = []
     for f in dataclasses.fields(settings):
         meta = f.metadata
@@ -181,7 +184,7 @@ def describe_settings(settings: Any) -> list[dict[str, Any]]:
             {
                 "name": f.name,
                 "value": list(value) if isinstance(value, tuple) else value,
-                "default": f.default if f.default is not dataclasses.MISSING else None,
+                "source": (sources or {}).get(f.name, "default"),
                 "group": meta.get("group", ""),
                 "unit": meta.get("unit", ""),
                 "range": range_text(dict(meta)) if meta else "",
@@ -189,3 +192,27 @@ def describe_settings(settings: Any) -> list[dict[str, Any]]:
             }
         )
     return rows
+
+
+def setting_sources(settings_cls: type, instrument: Any, table: str, overrides: dict[str, Any] | None = None) -> dict[str, str]:
+    """Where each setting's value comes from: ``default`` (the class), ``instrument`` (scaled to
+    the instrument's control step and motion by ``for_instrument``), ``instrument file``
+    (its ``[planner_defaults.<table>]``) or ``--set``."""
+    defaults = settings_cls()
+    file_table = dict(instrument.planner_defaults.get(table, {}))
+    if hasattr(settings_cls, "for_instrument"):
+        bare = dataclasses.replace(instrument, planner_defaults={k: v for k, v in instrument.planner_defaults.items() if k != table})
+        scaled = settings_cls.for_instrument(bare)
+    else:
+        scaled = defaults
+    out = {}
+    for f in dataclasses.fields(settings_cls):
+        if f.name in (overrides or {}):
+            out[f.name] = "--set"
+        elif f.name in file_table:
+            out[f.name] = "instrument file"
+        elif getattr(scaled, f.name) != getattr(defaults, f.name):
+            out[f.name] = "instrument"
+        else:
+            out[f.name] = "default"
+    return out

@@ -24,13 +24,14 @@ against the preset shipped with fiberplan).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
 from fiberplan.errors import TrajectoryError
-from fiberplan.geometry import capsule_segments, clearance_between
+from fiberplan.geometry import capsule_segments, clearance_between, motion_bound, point_extents
 from fiberplan.instrument import Instrument
 from fiberplan.instrument_io import load_instrument, preset_names
 from fiberplan.layout import neighbour_pairs
@@ -239,54 +240,7 @@ def _verify(scenario: Scenario, trajectory: Trajectory, fraction: float, time_ch
 
     # Between samples: bisect the intervals whose motion bound is not small against the clearance.
     if n_t > 1:
-        rho_a, rho_b = inst.alpha_point_extent_mm, inst.beta_point_extent_mm
-        step = np.abs(np.diff(joints, axis=0))  # (T-1, N, 2)
-        motion = rho_a * step[..., 0] + rho_b * step[..., 1]  # (T-1, N)
-        bound = motion[:, pairs[:, 0]] + motion[:, pairs[:, 1]]  # (T-1, P)
-        c0, c1 = sample_clear[:-1], sample_clear[1:]
-        needs = (bound > fraction * np.minimum(c0, c1)) & (c0 >= 0.0) & (c1 >= 0.0) & (bound > 0.0)
-        k_idx, p_idx = np.nonzero(needs)
-        lo = np.zeros(len(k_idx))
-        hi = np.ones(len(k_idx))
-        clo, chi = c0[k_idx, p_idx], c1[k_idx, p_idx]
-        bnd = bound[k_idx, p_idx]
-        for _ in range(_MAX_BISECTIONS):
-            if len(k_idx) == 0:
-                break
-            mid = 0.5 * (lo + hi)
-            i_rows, j_rows = pairs[p_idx, 0], pairs[p_idx, 1]
-            q_i = (1 - mid)[:, None] * joints[k_idx, i_rows] + mid[:, None] * joints[k_idx + 1, i_rows]
-            q_j = (1 - mid)[:, None] * joints[k_idx, j_rows] + mid[:, None] * joints[k_idx + 1, j_rows]
-            clear_k = clearance_between(
-                inst,
-                scenario.base_xy[i_rows], scenario.orient[i_rows], q_i,
-                scenario.base_xy[j_rows], scenario.orient[j_rows], q_j,
-            )
-            cmid = clear_k.min(axis=1)
-            report.probes += len(cmid)
-            t_mid = times[k_idx] + mid * (times[k_idx + 1] - times[k_idx])
-            report.min_clearance_mm = min(report.min_clearance_mm, float(np.nanmin(cmid, initial=np.inf)))
-            hit = cmid < 0.0
-            if np.any(hit):
-                record(p_idx[hit], t_mid[hit], clear_k[hit])
-            # Split every surviving piece in two halves with half the motion bound.
-            half = 0.5 * bnd
-            keep = ~hit
-            new_k = np.concatenate([k_idx[keep], k_idx[keep]])
-            new_p = np.concatenate([p_idx[keep], p_idx[keep]])
-            new_lo = np.concatenate([lo[keep], mid[keep]])
-            new_hi = np.concatenate([mid[keep], hi[keep]])
-            new_clo = np.concatenate([clo[keep], cmid[keep]])
-            new_chi = np.concatenate([cmid[keep], chi[keep]])
-            new_b = np.concatenate([half[keep], half[keep]])
-            still = new_b > fraction * np.minimum(new_clo, new_chi)
-            k_idx, p_idx, lo, hi = new_k[still], new_p[still], new_lo[still], new_hi[still]
-            clo, chi, bnd = new_clo[still], new_chi[still], new_b[still]
-            # Pairs already known to collide need no further probing.
-            if worst and len(p_idx):
-                known = np.isin(p_idx, np.fromiter(worst.keys(), dtype=np.int64))
-                k_idx, p_idx, lo, hi = k_idx[~known], p_idx[~known], lo[~known], hi[~known]
-                clo, chi, bnd = clo[~known], chi[~known], bnd[~known]
+        _between_samples(inst, scenario, joints, times, pairs, sample_clear, fraction, report, record, worst)
 
     for p, (t_first, t_worst, value, k) in sorted(worst.items(), key=lambda item: item[1][0]):
         i, j = pairs[p]
@@ -304,6 +258,63 @@ def _verify(scenario: Scenario, trajectory: Trajectory, fraction: float, time_ch
             )
         )
     return report
+
+
+def _between_samples(
+    inst: Instrument, scenario: Scenario, joints: np.ndarray, times: np.ndarray, pairs: np.ndarray, sample_clear: np.ndarray,
+    fraction: float, report: VerificationReport, record: Callable[[np.ndarray, np.ndarray, np.ndarray], None],
+    worst: dict[int, list[float]],
+) -> None:
+    """Bisect every interval whose pairs' motion bound is not small against their clearance at
+    both ends, until each piece is proven clear (the motion bound of :mod:`fiberplan.planners.safety`)
+    or found colliding (``record``)."""
+    step = np.abs(np.diff(joints, axis=0))  # (T-1, N, 2)
+    motion = motion_bound(point_extents(inst), step)  # (T-1, N)
+    bound = motion[:, pairs[:, 0]] + motion[:, pairs[:, 1]]  # (T-1, P)
+    c0, c1 = sample_clear[:-1], sample_clear[1:]
+    needs = (bound > fraction * np.minimum(c0, c1)) & (c0 >= 0.0) & (c1 >= 0.0) & (bound > 0.0)
+    k_idx, p_idx = np.nonzero(needs)
+    lo = np.zeros(len(k_idx))
+    hi = np.ones(len(k_idx))
+    clo, chi = c0[k_idx, p_idx], c1[k_idx, p_idx]
+    bnd = bound[k_idx, p_idx]
+    for _ in range(_MAX_BISECTIONS):
+        if len(k_idx) == 0:
+            break
+        mid = 0.5 * (lo + hi)
+        i_rows, j_rows = pairs[p_idx, 0], pairs[p_idx, 1]
+        q_i = (1 - mid)[:, None] * joints[k_idx, i_rows] + mid[:, None] * joints[k_idx + 1, i_rows]
+        q_j = (1 - mid)[:, None] * joints[k_idx, j_rows] + mid[:, None] * joints[k_idx + 1, j_rows]
+        clear_k = clearance_between(
+            inst,
+            scenario.base_xy[i_rows], scenario.orient[i_rows], q_i,
+            scenario.base_xy[j_rows], scenario.orient[j_rows], q_j,
+        )
+        cmid = clear_k.min(axis=1)
+        report.probes += len(cmid)
+        t_mid = times[k_idx] + mid * (times[k_idx + 1] - times[k_idx])
+        report.min_clearance_mm = min(report.min_clearance_mm, float(np.nanmin(cmid, initial=np.inf)))
+        hit = cmid < 0.0
+        if np.any(hit):
+            record(p_idx[hit], t_mid[hit], clear_k[hit])
+        # Split every surviving piece in two halves with half the motion bound.
+        half = 0.5 * bnd
+        keep = ~hit
+        new_k = np.concatenate([k_idx[keep], k_idx[keep]])
+        new_p = np.concatenate([p_idx[keep], p_idx[keep]])
+        new_lo = np.concatenate([lo[keep], mid[keep]])
+        new_hi = np.concatenate([mid[keep], hi[keep]])
+        new_clo = np.concatenate([clo[keep], cmid[keep]])
+        new_chi = np.concatenate([cmid[keep], chi[keep]])
+        new_b = np.concatenate([half[keep], half[keep]])
+        still = new_b > fraction * np.minimum(new_clo, new_chi)
+        k_idx, p_idx, lo, hi = new_k[still], new_p[still], new_lo[still], new_hi[still]
+        clo, chi, bnd = new_clo[still], new_chi[still], new_b[still]
+        # Pairs already known to collide need no further probing.
+        if worst and len(p_idx):
+            known = np.isin(p_idx, np.fromiter(worst.keys(), dtype=np.int64))
+            k_idx, p_idx, lo, hi = k_idx[~known], p_idx[~known], lo[~known], hi[~known]
+            clo, chi, bnd = clo[~known], chi[~known], bnd[~known]
 
 
 def _enclosing_disc_gap(

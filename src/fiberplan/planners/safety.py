@@ -25,19 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from fiberplan.errors import PlannerError
-from fiberplan.geometry import clearance_between, pair_clearance
-from fiberplan.instrument import Instrument
+from fiberplan.geometry import clearance_between, motion_bound, pair_clearance, point_extents
 from fiberplan.scenario import Scenario
-
-
-def point_extents(instrument: Instrument) -> np.ndarray:
-    """``[rho_alpha, rho_beta]``: the farthest capsule point from the base and from the elbow (mm)."""
-    return np.array([instrument.alpha_point_extent_mm, instrument.beta_point_extent_mm])
-
-
-def motion_bound(rho: np.ndarray, dq: np.ndarray) -> np.ndarray:
-    """Farthest any capsule point moves over the linear joint moves ``dq`` (``(..., 2)``, rad): mm."""
-    return np.abs(dq) @ rho
 
 
 def clearance_along(c0: np.ndarray, c1: np.ndarray, bound: np.ndarray) -> np.ndarray:

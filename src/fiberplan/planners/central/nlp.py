@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from fiberplan.errors import PlannerError
-from fiberplan.geometry import pair_clearance, segment_distance
+from fiberplan.geometry import motion_bound, pair_clearance, point_extents, segment_distance
 from fiberplan.instrument import Instrument
 from fiberplan.kinematics import move_times
 from fiberplan.planners.central.settings import _IPOPT_SUCCESS, CentralSettings
@@ -138,7 +138,7 @@ def _point_positions(instrument: Instrument, pts: _Points, base_xy: np.ndarray, 
 def _motion_bound(instrument: Instrument, joints: np.ndarray) -> np.ndarray:
     """Largest distance any capsule point moves over each interval, ``(T, N)`` (verifier's bound)."""
     delta = np.abs(np.diff(joints, axis=0))
-    return instrument.alpha_point_extent_mm * delta[..., 0] + instrument.beta_point_extent_mm * delta[..., 1]
+    return motion_bound(point_extents(instrument), delta)
 
 
 def _close_intervals(scenario: Scenario, joints: np.ndarray, activate_mm: float) -> np.ndarray:
@@ -252,7 +252,6 @@ def _solve_nlp(problem: _Problem, active: np.ndarray, guess_q: np.ndarray, guess
             py_list.append(by + pts.dist[p] * sa_)
     px_all = ca.vertcat(*px_list)
     py_all = ca.vertcat(*py_list)
-    stride = (T + 1) * n  # points are stacked (point, k, i)
 
     # Speed bounds and energy: dq over every interval.
     cur = np.arange(T * n * 2)
@@ -265,42 +264,10 @@ def _solve_nlp(problem: _Problem, active: np.ndarray, guess_q: np.ndarray, guess
     energy = ca.sumsqr(dq) / h
 
     if n_lines:
-        nx, ny, cc = lines[0::3], lines[1::3], lines[2::3]
-        k_l, p_l, c_l = active[:, 0], active[:, 1], active[:, 2]
-        i_l, j_l = sc.pairs[p_l, 0], sc.pairs[p_l, 1]
-        mid = 0.5 * (sc.base_xy[i_l] + sc.base_xy[j_l])
-        rows_line, rows_point, rows_sign, rows_move = [], [], [], []
-        for side, (pos, cap_col) in enumerate(((i_l, 0), (j_l, 1))):
-            cap = problem.combos[c_l, cap_col]
-            for p in range(len(pts.arm)):
-                use = pts.capsule[p] == cap
-                if not np.any(use):
-                    continue
-                lidx = np.flatnonzero(use)
-                for dk in (0, 1):
-                    rows_line.append(lidx)
-                    rows_point.append(p * stride + (k_l[lidx] + dk) * n + pos[lidx])
-                    rows_sign.append(np.full(len(lidx), 1.0 if side == 0 else -1.0))
-                    rows_move.append((k_l[lidx] * n + pos[lidx]) * 2)  # alpha of this positioner at knot k
-        r_line = np.concatenate(rows_line)
-        r_point = np.concatenate(rows_point)
-        r_sign = np.concatenate(rows_sign)
-        r_pid = r_point // stride
-        relief = _end_relief(problem, active)[r_line]
-        const = pts.radius[r_pid] + 0.5 * st.margin_mm * relief
-        r_move = np.concatenate(rows_move)
-        d_alpha = q[r_move + 2 * n] - q[r_move]
-        d_beta = q[r_move + 2 * n + 1] - q[r_move + 1]
-        chord = ca.DM(pts.chord_alpha[r_pid] * relief) * d_alpha**2 + ca.DM(pts.chord_beta[r_pid] * relief) * d_beta**2
-        signed = (
-            nx[r_line] * (px_all[r_point] - ca.DM(mid[r_line, 0]))
-            + ny[r_line] * (py_all[r_point] - ca.DM(mid[r_line, 1]))
-            - cc[r_line]
-        )
-        g_sep = ca.DM(r_sign) * signed - ca.DM(const) - chord
-        g_parts += [g_sep, nx**2 + ny**2]
-        lbg += [np.zeros(len(r_line)), np.full(n_lines, -np.inf)]
-        ubg += [np.full(len(r_line), np.inf), np.ones(n_lines)]
+        g_sep, norms = _separation(problem, active, q, lines, px_all, py_all)
+        g_parts += [g_sep, norms]
+        lbg += [np.zeros(g_sep.shape[0]), np.full(n_lines, -np.inf)]
+        ubg += [np.full(g_sep.shape[0], np.inf), np.ones(n_lines)]
 
     e_ref = problem.energy_ref if problem.energy_ref > 0 else 1.0
     if problem.tau_fixed is None:
@@ -357,6 +324,51 @@ def _solve_nlp(problem: _Problem, active: np.ndarray, guess_q: np.ndarray, guess
         "objective": float(sol["f"]),
         "solve_s": solve_s,
     }, build_s
+
+
+def _separation(problem: _Problem, active: np.ndarray, q: Any, lines: Any, px_all: Any, py_all: Any) -> tuple[Any, Any]:
+    """The separating-line constraints of the ``active`` lines (each capsule end point of both
+    sides at both knots of the interval, on its side of the line by its radius, half the margin and
+    the chord allowance) and the squared norms of the lines' normals (at most 1)."""
+    import casadi as ca
+
+    sc, st, pts = problem.scenario, problem.settings, problem.points
+    n = problem.n
+    stride = (problem.steps + 1) * n  # points are stacked (point, k, i)
+    nx, ny, cc = lines[0::3], lines[1::3], lines[2::3]
+    k_l, p_l, c_l = active[:, 0], active[:, 1], active[:, 2]
+    i_l, j_l = sc.pairs[p_l, 0], sc.pairs[p_l, 1]
+    mid = 0.5 * (sc.base_xy[i_l] + sc.base_xy[j_l])
+    rows_line, rows_point, rows_sign, rows_move = [], [], [], []
+    for side, (pos, cap_col) in enumerate(((i_l, 0), (j_l, 1))):
+        cap = problem.combos[c_l, cap_col]
+        for p in range(len(pts.arm)):
+            use = pts.capsule[p] == cap
+            if not np.any(use):
+                continue
+            lidx = np.flatnonzero(use)
+            for dk in (0, 1):
+                rows_line.append(lidx)
+                rows_point.append(p * stride + (k_l[lidx] + dk) * n + pos[lidx])
+                rows_sign.append(np.full(len(lidx), 1.0 if side == 0 else -1.0))
+                rows_move.append((k_l[lidx] * n + pos[lidx]) * 2)  # alpha of this positioner at knot k
+    r_line = np.concatenate(rows_line)
+    r_point = np.concatenate(rows_point)
+    r_sign = np.concatenate(rows_sign)
+    r_pid = r_point // stride
+    relief = _end_relief(problem, active)[r_line]
+    const = pts.radius[r_pid] + 0.5 * st.margin_mm * relief
+    r_move = np.concatenate(rows_move)
+    d_alpha = q[r_move + 2 * n] - q[r_move]
+    d_beta = q[r_move + 2 * n + 1] - q[r_move + 1]
+    chord = ca.DM(pts.chord_alpha[r_pid] * relief) * d_alpha**2 + ca.DM(pts.chord_beta[r_pid] * relief) * d_beta**2
+    signed = (
+        nx[r_line] * (px_all[r_point] - ca.DM(mid[r_line, 0]))
+        + ny[r_line] * (py_all[r_point] - ca.DM(mid[r_line, 1]))
+        - cc[r_line]
+    )
+    g_sep = ca.DM(r_sign) * signed - ca.DM(const) - chord
+    return g_sep, nx**2 + ny**2
 
 
 def _end_relief(problem: _Problem, active: np.ndarray) -> np.ndarray:

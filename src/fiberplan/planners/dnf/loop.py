@@ -137,25 +137,10 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
         history.append(q.copy())
 
         err = np.linalg.norm(fiber_positions(inst, scenario.base_xy, scenario.orient, q) - target_xy, axis=1)
-        reached = err <= tol
-        togo = _distance_to_go(settings, rho_reach, q, target, err)
-        deadlock.update(togo)
-        blocking.update(togo)
-        ended = np.flatnonzero(escape.active & (escape.until <= step_count))
-        if len(ended):
-            escape.active[ended] = False
-            deadlock.reset(ended, togo)
-            blocking.reset(ended, togo)
-        if settings.deadlock_escape == "retreat":
-            started = _start_retreats(
-                escape, blocking.stuck(), reached, pairs, clear0, settings.envelope_mm,
-                np.where(reached, -1.0, initial_move), scenario.ids, q, fold_beta, step_count, retreat_steps, settings.max_retreats,
-            )
-            if len(started):
-                deadlock.reset(started, togo)
-                blocking.reset(started, togo)
+        _track_deadlocks(scenario, settings, model, q, err, clear0, escape, deadlock, blocking, initial_move, fold_beta, step_count,
+                         retreat_steps, rho_reach)
         settled = ~escape.active & deadlock.stuck()
-        stuck = ~reached & settled
+        stuck = (err > tol) & settled
         stuck_ever |= stuck
         if progress is not None and step_count % 50 == 0:
             progress(min(1.0, step_count / max_steps))
@@ -185,6 +170,31 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
         "loop_wall_s": time.perf_counter() - t_wall,
     }
     return _dnf_result(scenario, settings, np.stack(history), stuck, err <= tol, counters)
+
+
+def _track_deadlocks(
+    scenario: Scenario, settings: DnfSettings, model: _PairModel, q: np.ndarray, err: np.ndarray, clear0: np.ndarray,
+    escape: _Escape, deadlock: _ProgressWindow, blocking: _ProgressWindow, initial_move: np.ndarray, fold_beta: float, step_count: int,
+    retreat_steps: int, rho_reach: float,
+) -> None:
+    """Progress windows after a step; escapes that end; retreats that start (``deadlock_escape = "retreat"``)."""
+    reached = err <= scenario.instrument.tolerance_mm
+    togo = _distance_to_go(settings, rho_reach, q, scenario.target, err)
+    deadlock.update(togo)
+    blocking.update(togo)
+    ended = np.flatnonzero(escape.active & (escape.until <= step_count))
+    if len(ended):
+        escape.active[ended] = False
+        deadlock.reset(ended, togo)
+        blocking.reset(ended, togo)
+    if settings.deadlock_escape == "retreat":
+        started = _start_retreats(
+            escape, blocking.stuck(), reached, model.pairs, clear0, settings.envelope_mm,
+            np.where(reached, -1.0, initial_move), scenario.ids, q, fold_beta, step_count, retreat_steps, settings.max_retreats,
+        )
+        if len(started):
+            deadlock.reset(started, togo)
+            blocking.reset(started, togo)
 
 
 def _desired_step(

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fiberplan.geometry import capsule_segments, capsule_tables, point_to_segment, segment_distance
+from fiberplan.geometry import capsule_segments, capsule_tables, motion_bound, point_extents, point_to_segment, segment_distance
 from fiberplan.planners.mpc.grid import JointGrid, clearance_to, cross_clearance, densify
 from fiberplan.scenario import Scenario
 
@@ -40,8 +40,7 @@ class DetourGrid(JointGrid):
         cell = cell_steps * step_rad
         super().__init__(scenario, i, cell, *JointGrid.over_stops(scenario, cell))
         self.step_rad = step_rad
-        rho = np.array([inst.alpha_point_extent_mm, inst.beta_point_extent_mm])
-        self.threshold = clear_mm + 0.5 * float(rho @ self.cell)
+        self.threshold = clear_mm + 0.5 * float(motion_bound(point_extents(inst), self.cell))
         self.end_clear_mm, self.end_cells = end_clear_mm, end_cells
         self._memo: dict[tuple[int, float, float, float], np.ndarray] = {}  # (j, q_j, cutoff) -> clearances
         ca = capsule_tables(inst)[3][:, 0]

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from fiberplan.errors import PlannerError
+from fiberplan.geometry import motion_bound, point_extents
 from fiberplan.instrument import Instrument
 from fiberplan.planners import instrument_defaults
 from fiberplan.settings import check_settings, setting
@@ -138,7 +139,4 @@ class MpcSettings:
 
 def step_motion_mm(instrument: Instrument, dt_s: float) -> float:
     """Largest distance a capsule point moves in one step at full speed (mm)."""
-    return float(
-        (instrument.alpha_point_extent_mm * instrument.alpha_speed_rad_s + instrument.beta_point_extent_mm * instrument.beta_speed_rad_s)
-        * dt_s
-    )
+    return float(motion_bound(point_extents(instrument), instrument.speeds_rad_s) * dt_s)
