@@ -412,7 +412,7 @@ def test_bad_command_lines_are_one_line_and_exit_2(args, fragment):
     (lambda d: d.update(meta=[1, 2]), "'meta' must be an object"),
     (lambda d: d.update(seed="abc"), "'seed' must be an integer"),
     (lambda d: d.update(seed=2**70), "'seed' must be an integer"),
-    (lambda d: d["positioners"].__setitem__(0, [1, 2]), "positioner #0"),
+    (lambda d: d["positioners"].__setitem__(0, [1, 2]), "positioner #0: each entry of 'positioners' must be an object"),
     (lambda d: d["positioners"][0].update(id=2**70), "does not fit in 64 bits"),
     (lambda d: d["positioners"][0].update(orient_deg=1e300), "orient_deg"),
 ])

@@ -21,6 +21,7 @@ from typing import Any
 import click
 
 from fiberplan._atomic import check_output_path
+from fiberplan._json import json_ready as _json_ready
 from fiberplan.errors import FiberplanError, InfrastructureError
 
 DEFAULT_PLANNER = "mpc"
@@ -48,17 +49,6 @@ class _FilePath(click.Path):
 
 PATH = _FilePath(path_type=Path)
 POSITIONERS = click.IntRange(1, 50_000)
-
-
-def _json_ready(value: Any) -> Any:
-    """Replace NaN / inf by None so that the output is strict JSON."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_ready(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_json_ready(v) for v in value]
-    return value
 
 
 def _explicit(ctx: click.Context, *names: str) -> list[str]:

@@ -25,8 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from fiberplan._json import json_ready as _json_ready
 from fiberplan.errors import PlannerError
 from fiberplan.instrument import Instrument
 from fiberplan.scenario import Scenario
@@ -48,18 +47,6 @@ class CompareResult:
         """JSON-ready (NaN and inf become None; no tracebacks)."""
         rows = [{k: v for k, v in r.items() if k != "traceback" and not k.startswith("_")} for r in self.rows]
         return _json_ready({"parameters": self.parameters, "rows": rows, "aggregates": self.aggregates})
-
-
-def _json_ready(value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, np.generic):
-        return _json_ready(value.item())
-    if isinstance(value, dict):
-        return {k: _json_ready(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_ready(v) for v in value]
-    return value
 
 
 def run_compare(

@@ -74,7 +74,6 @@ class QpBatchResult:
 
     status: np.ndarray
     z: np.ndarray
-    slack_max: np.ndarray
     iterations: np.ndarray
     solve_s: np.ndarray
     new_workspaces: int
@@ -95,7 +94,6 @@ class _Block:
         H = self.layout.horizon_steps
         status = np.zeros(m, dtype=np.int64)
         z = np.full((m, H, 2), np.nan)
-        slack_max = np.zeros(m)
         iterations = np.zeros(m, dtype=np.int64)
         solve_s = np.zeros(m)
         created = 0
@@ -126,17 +124,14 @@ class _Block:
             dt = time.perf_counter() - t0
             status[r], iterations[r], solve_s[r] = st, it, dt
             if x is not None and st in USABLE:
-                zz, _, ss = self.layout.split(x)
-                z[r] = zz
-                slack_max[r] = float(ss.max(initial=0.0))
-        return QpBatchResult(status, z, slack_max, iterations, solve_s, created, first_error)
+                z[r] = self.layout.split(x)[0]
+        return QpBatchResult(status, z, iterations, solve_s, created, first_error)
 
 
 def _merge(parts: list[tuple[np.ndarray, QpBatchResult]], m: int, H: int) -> QpBatchResult:
     out = QpBatchResult(
         status=np.zeros(m, dtype=np.int64),
         z=np.full((m, H, 2), np.nan),
-        slack_max=np.zeros(m),
         iterations=np.zeros(m, dtype=np.int64),
         solve_s=np.zeros(m),
         new_workspaces=0,
@@ -145,7 +140,6 @@ def _merge(parts: list[tuple[np.ndarray, QpBatchResult]], m: int, H: int) -> QpB
         out.first_error = out.first_error or res.first_error
         out.status[rows] = res.status
         out.z[rows] = res.z
-        out.slack_max[rows] = res.slack_max
         out.iterations[rows] = res.iterations
         out.solve_s[rows] = res.solve_s
         out.new_workspaces += res.new_workspaces

@@ -1,0 +1,160 @@
+"""Benchmarks: a study file (``benchmarks/studies/*.toml``) run by the one study runner, summarised.
+
+Every run is planned, verified by the independent verifier and written as a row of the study's
+Parquet table (resumable: re-running skips finished runs). The summary goes to
+``benchmarks/results/<study>.json`` with the machine, package versions, commit and date, one
+entry per group (instrument, size, scenario kind and options, planner, settings)::
+
+    python benchmarks/bench.py run benchmarks/studies/mpc_desi.toml [--workers 2]
+    python benchmarks/bench.py table benchmarks/results/mpc_desi.json       # Markdown, for docs/results.md
+    python benchmarks/bench.py compare --instrument moons -n 7 --seeds 30    # gaps to central -> results/central_moons_7.json
+
+Timing figures (``plan_wall_s``) are only comparable between runs on one quiet machine with the
+same ``--workers``; the scaling study runs with ``--workers 1``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from _machine import machine_info
+
+from fiberplan._json import json_ready as _json_ready
+
+RESULTS = Path(__file__).resolve().parent / "results"
+GROUP = ("instrument", "n_positioners", "scenario_kind", "planner", "settings_json")
+
+
+def _finite(values: Any) -> np.ndarray:
+    arr = np.asarray(values, dtype=float)
+    return arr[np.isfinite(arr)]
+
+
+def _stat(values: Any, fn: Any) -> float | None:
+    arr = _finite(values)
+    return float(fn(arr)) if len(arr) else None
+
+
+def summarise(frame: Any) -> list[dict[str, Any]]:
+    """One summary per group of runs."""
+    options = sorted(c for c in frame.columns if c.startswith("scenario."))
+    groups = []
+    for key, g in frame.groupby([*GROUP, *options], dropna=False, sort=False):
+        ok = g[g["status"] == "ok"]
+        entry: dict[str, Any] = dict(zip([*GROUP, *options], [k.item() if hasattr(k, "item") else k for k in key], strict=True))
+        entry |= {
+            "runs": len(g),
+            "errors": int((g["status"] == "error").sum()),
+            "lost": int((g["status"] == "lost").sum()),
+            "collisions_total": int(ok["collisions"].sum()),
+            "limit_violations_total": int(ok["limit_violations"].sum()),
+            "runs_verified_ok": int(ok["verified_ok"].sum()),
+            "targets_total": int(ok["targets"].sum()),
+            "reached_total": int(ok["reached"].sum()),
+            "reached_fraction": float(ok["reached"].sum() / ok["targets"].sum()) if ok["targets"].sum() else None,
+            "success_rate_min": _stat(ok["success_rate"], np.min),
+            "runs_all_reached": int((ok["reached"] == ok["targets"]).sum()),
+            "deadlocked_total": int(ok["deadlocked"].sum()),
+            "unfinished_total": int(ok["unfinished"].sum()),
+            "makespan_over_bound_median": _stat(ok["makespan_over_bound"], np.median),
+            "makespan_over_bound_p90": _stat(ok["makespan_over_bound"], lambda a: np.percentile(a, 90)),
+            "makespan_over_bound_max": _stat(ok["makespan_over_bound"], np.max),
+            "makespan_s_median": _stat(ok["makespan_s"], np.median),
+            "plan_wall_s_median": _stat(ok["plan_wall_s"], np.median),
+            "plan_wall_s_max": _stat(ok["plan_wall_s"], np.max),
+        }
+        for stat in ("stat.schedule_wall_s", "stat.qp_solve_ms_median", "stat.deadlocks_detected"):
+            if stat in ok:
+                entry[f"{stat[5:]}_median"] = _stat(ok[stat], np.median)
+        groups.append(entry)
+    return groups
+
+
+def write_summary(name: str, payload: dict[str, Any]) -> Path:
+    from fiberplan._atomic import atomic_path
+
+    RESULTS.mkdir(exist_ok=True)
+    path = RESULTS / f"{name}.json"
+    payload = {"name": name, "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+               "machine": machine_info(("osqp", "casadi", "pandas", "dask"))} | payload
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(_json_ready(payload), indent=1) + "\n")
+    return path
+
+
+def cmd_run(args: argparse.Namespace) -> None:
+    from fiberplan.studies import load_results, load_study, run_study
+
+    spec = load_study(args.study)
+    run_study(spec, workers=args.workers, progress=not args.quiet)
+    frame = load_results(spec.out)
+    path = write_summary(Path(args.study).stem, {
+        "study": str(args.study), "table": str(spec.out), "workers": args.workers,
+        "command": f"python benchmarks/bench.py run {args.study}" + (f" --workers {args.workers}" if args.workers else ""),
+        "groups": summarise(frame),
+    })
+    print(f"wrote {path}")
+
+
+def cmd_table(args: argparse.Namespace) -> None:
+    data = json.loads(Path(args.result).read_text())
+
+    def fmt(v: Any, spec: str = ".3f") -> str:
+        return "n/a" if v is None else format(v, spec)
+
+    print("| instrument | N | kind | planner | settings | seeds | reached | seeds all reached | collisions | "
+          "makespan / bound (median, max) | plan wall median |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for g in data["groups"]:
+        settings = "" if g["settings_json"] in ("{}", "") else g["settings_json"]
+        print(f"| {g['instrument']} | {g['n_positioners']} | {g['scenario_kind']} | {g['planner']} | {settings} | {g['runs']} | "
+              f"{fmt(100 * g['reached_fraction'] if g['reached_fraction'] is not None else None, '.2f')} % | "
+              f"{g['runs_all_reached']} | {g['collisions_total']} | {fmt(g['makespan_over_bound_median'])}, "
+              f"{fmt(g['makespan_over_bound_max'])} | {fmt(g['plan_wall_s_median'], '.2f')} s |")
+    print(f"\n`{data.get('command', '')}` ({data['date_utc']}, {data['machine']['fiberplan_commit'][:10]})")
+
+
+def cmd_compare(args: argparse.Namespace) -> None:
+    from fiberplan.studies import run_compare
+
+    settings: dict[str, dict[str, Any]] = {}
+    for item in args.set:
+        key, raw = item.split("=", 1)
+        planner, name = key.split(".", 1)
+        settings.setdefault(planner, {})[name] = json.loads(raw)
+    result = run_compare(args.instrument, args.n, args.planners.split(","), list(range(args.seeds)), kind=args.kind,
+                         settings=settings, energy_gap=args.energy_gap)
+    name = f"central_{args.instrument}_{args.n}"
+    path = write_summary(name, {"command": " ".join(["python", "benchmarks/bench.py", *sys.argv[1:]])} | result.to_dict())
+    print(f"wrote {path}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run a study file and summarise it")
+    run.add_argument("study", type=Path)
+    run.add_argument("--workers", type=int, default=None)
+    run.add_argument("--quiet", "-q", action="store_true")
+    table = sub.add_parser("table", help="Markdown table of a summary")
+    table.add_argument("result", type=Path)
+    comp = sub.add_parser("compare", help="planners against the central reference on hard groups")
+    comp.add_argument("--instrument", default="desi")
+    comp.add_argument("-n", type=int, default=7)
+    comp.add_argument("--planners", default="central,mpc,dnf")
+    comp.add_argument("--seeds", type=int, default=30)
+    comp.add_argument("--kind", default="hard")
+    comp.add_argument("--set", action="append", default=[], metavar="PLANNER.KEY=JSON")
+    comp.add_argument("--energy-gap", action="store_true")
+    args = parser.parse_args()
+    {"run": cmd_run, "table": cmd_table, "compare": cmd_compare}[args.command](args)
+
+
+if __name__ == "__main__":
+    main()
