@@ -10,6 +10,7 @@ bit-identical trajectories.
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing as mp
 import time
 from dataclasses import dataclass
@@ -32,39 +33,20 @@ from fiberplan.planners.mpc.qp import (
 
 
 @dataclass
-class QpBatch:
-    """QP data of ``m`` positioners for one control step (arrays stacked over positioners).
-
-    ``index`` holds the positioner rows; the other arrays are the fields of
-    :class:`~fiberplan.planners.mpc.qp.QpData` with a leading ``m`` axis.
-    """
+class QpBatch(QpData):
+    """QP data of ``m`` positioners for one control step: the fields of
+    :class:`~fiberplan.planners.mpc.qp.QpData` with a leading ``m`` axis, and ``index``, the
+    positioner rows."""
 
     index: np.ndarray
-    z_ref: np.ndarray
-    z_lo: np.ndarray
-    z_hi: np.ndarray
-    v_prev: np.ndarray
-    coef: np.ndarray
-    rhs: np.ndarray
-    active: np.ndarray
-    slack_linear: np.ndarray
 
     def take(self, rows: np.ndarray) -> QpBatch:
         """The sub-batch of the given rows."""
-        return QpBatch(*(getattr(self, f)[rows] for f in self.__dataclass_fields__))
+        return QpBatch(**{f.name: getattr(self, f.name)[rows] for f in dataclasses.fields(self)})
 
     def data(self, r: int) -> QpData:
         """The :class:`QpData` of row ``r``."""
-        return QpData(
-            z_ref=self.z_ref[r],
-            z_lo=self.z_lo[r],
-            z_hi=self.z_hi[r],
-            v_prev=self.v_prev[r],
-            coef=self.coef[r],
-            rhs=self.rhs[r],
-            active=self.active[r],
-            slack_linear=self.slack_linear[r],
-        )
+        return QpData(**{f.name: getattr(self, f.name)[r] for f in dataclasses.fields(QpData)})
 
 
 @dataclass
