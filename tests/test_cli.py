@@ -115,7 +115,6 @@ def test_truncated_scenario_file(tmp_path):
     [
         (lambda rows: rows[3].__setitem__("start_deg", [float("nan"), 0.0]), "positioner 3: start_deg holds a non-finite"),
         (lambda rows: rows[4].__setitem__("start_deg", [0.0, 200.0]), "positioner 4: start joints"),
-        (lambda rows: rows[5].__setitem__("target", {"x_mm": 100.0, "y_mm": 0.0}), "positioner 5: target"),
         (lambda rows: rows[6].__setitem__("id", 2), "id 2 appears 2 times"),
     ],
 )

@@ -14,17 +14,12 @@ from fiberplan.planners.mpc.detour import detour_route, pair_resolution
 from fiberplan.planners.mpc.grid import clearance_to as _clearance_to
 from fiberplan.planners.mpc.grid import densify as _densify
 from fiberplan.planners.mpc.waiting import path_clearance as _path_clearance
-from fiberplan.scenario import Scenario, _replace
+from fiberplan.scenario import Scenario
 from fiberplan.verify import verify
 
 
 def _subset(scenario: Scenario, rows: list[int]) -> Scenario:
-    r = np.asarray(rows)
-    return _replace(
-        scenario, ids=scenario.ids[r], base_xy=scenario.base_xy[r], orient_deg=scenario.orient_deg[r], start_deg=scenario.start_deg[r],
-        target_kind=scenario.target_kind[r], target_values=scenario.target_values[r], target_parity=scenario.target_parity[r],
-        name="pair",
-    )
+    return scenario.subset(rows, name="pair")
 
 
 @pytest.fixture(scope="module")

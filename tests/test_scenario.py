@@ -168,18 +168,24 @@ def test_nan_in_file_text(tmp_path, scenario_dict):
         load_scenario(path)
 
 
-def test_target_outside_patrol_disc(scenario_dict):
+def _infeasible(scenario):
+    return {int(scenario.ids[k]): why for k, why in scenario.infeasible.items()}
+
+
+def test_target_outside_patrol_disc_is_infeasible_not_an_error(scenario_dict):
     row = scenario_dict["positioners"][2]
     row["target"] = {"x_mm": row["x_mm"] + 6.5, "y_mm": row["y_mm"]}
-    with pytest.raises(ScenarioError, match=r"positioner 12: target .* outside the patrol region \[0.0000, 6.0000\]"):
-        scenario_from_dict(scenario_dict)
+    sc = scenario_from_dict(scenario_dict)
+    assert list(_infeasible(sc)) == [12]
+    assert "outside the patrol region [0.0000, 6.0000] mm" in _infeasible(sc)[12]
+    assert not sc.has_target[2] and np.array_equal(sc.target[2], sc.start[2])
+    assert sc.has_target.sum() == 6  # everyone else is planned
 
 
-def test_target_unreachable_with_parity(scenario_dict):
+def test_target_unreachable_with_parity_is_infeasible(scenario_dict):
     row = scenario_dict["positioners"][2]
     row["target"] = {"x_mm": row["x_mm"] + 2.0, "y_mm": row["y_mm"] + 1.0, "parity": -1}
-    with pytest.raises(ScenarioError, match="positioner 12: .*cannot be reached with parity -1"):
-        scenario_from_dict(scenario_dict)
+    assert "cannot be reached with parity -1" in _infeasible(scenario_from_dict(scenario_dict))[12]
 
 
 def test_bad_parity_value(scenario_dict):
@@ -195,10 +201,9 @@ def test_start_beyond_hard_stop(scenario_dict):
         scenario_from_dict(scenario_dict)
 
 
-def test_target_joints_beyond_hard_stop(scenario_dict):
+def test_target_joints_beyond_hard_stop_is_infeasible(scenario_dict):
     scenario_dict["positioners"][4]["target"] = {"alpha_deg": 200.0, "beta_deg": 90.0}
-    with pytest.raises(ScenarioError, match="positioner 14: target joints .* beyond a hard stop"):
-        scenario_from_dict(scenario_dict)
+    assert "beyond a hard stop" in _infeasible(scenario_from_dict(scenario_dict))[14]
 
 
 def test_colliding_start(scenario_dict):
@@ -211,12 +216,14 @@ def test_colliding_start(scenario_dict):
         scenario_from_dict(scenario_dict)
 
 
-def test_colliding_targets(scenario_dict):
+def test_colliding_targets_are_an_infeasible_pair_naming_each_other(scenario_dict):
     rows = {(round(r["x_mm"], 3), round(r["y_mm"], 3)): r for r in scenario_dict["positioners"]}
-    rows[(0.0, 0.0)]["target"] = {"x_mm": 5.0, "y_mm": 0.0}
-    rows[(10.4, 0.0)]["target"] = {"x_mm": 5.5, "y_mm": 0.0}
-    with pytest.raises(ScenarioError, match="collide in the goal configuration.*change one of their targets"):
-        scenario_from_dict(scenario_dict)
+    a, b = rows[(0.0, 0.0)], rows[(10.4, 0.0)]
+    a["target"] = {"x_mm": 5.0, "y_mm": 0.0}
+    b["target"] = {"x_mm": 5.5, "y_mm": 0.0}
+    why = _infeasible(scenario_from_dict(scenario_dict))
+    assert f"collides with positioner {b['id']}'s target" in why[a["id"]]
+    assert f"collides with positioner {a['id']}'s target" in why[b["id"]]
 
 
 def test_duplicate_ids(scenario_dict):

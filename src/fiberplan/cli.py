@@ -67,6 +67,14 @@ def _instrument_arg(text: str) -> tuple[Any, str | None, str]:
     return inst, (where if kind == "preset" else None), (f"preset {where}" if kind == "preset" else f"file {where}")
 
 
+def _print_not_reached(summary: dict[str, Any], limit: int = 20) -> None:
+    why = summary.get("not_reached") or {}
+    for pid, reason in list(why.items())[:limit]:
+        click.echo(f"  positioner {pid}: {reason}")
+    if len(why) > limit:
+        click.echo(f"  ... and {len(why) - limit} more not reached (use --json for all)")
+
+
 def _warn(messages: Sequence[str]) -> None:
     for message in messages:
         click.echo(f"warning: {message}", err=True)
@@ -98,7 +106,7 @@ def _parse_settings(pairs: Sequence[str]) -> dict[str, Any]:
 
 _SUMMARY_KEYS = (
     "planner", "instrument", "scenario_kind", "n_positioners", "seed", "targets", "reached", "success_rate", "held",
-    "deadlocked", "unfinished", "failed", "displaced", "collisions", "limit_violations", "makespan_s", "lower_bound_s",
+    "deadlocked", "unfinished", "failed", "displaced", "infeasible", "locked", "collisions", "limit_violations", "makespan_s", "lower_bound_s",
     "makespan_over_bound", "plan_wall_s",
 )
 
@@ -216,6 +224,10 @@ def plan(
     else:
         click.echo(f"fiberplan plan: {scenario.name or scenario.kind}")
         _print_table(summary, (*_SUMMARY_KEYS, "instrument_source", *(k for k in ("out", "picture") if k in summary)))
+        _print_not_reached(summary)
+    if scenario.infeasible:
+        _warn([f"{len(scenario.infeasible)} target(s) cannot be reached at all and were not planned (they hold): "
+               + "; ".join(f"positioner {scenario.ids[k]}: {why}" for k, why in list(scenario.infeasible.items())[:5])])
     _warn(result.warnings)
     if report is not None and not report.ok:
         click.echo(
@@ -258,6 +270,7 @@ def verify(file: Path, as_json: bool, max_events: int, instrument: str | None) -
     else:
         click.echo(f"fiberplan verify: {file}")
         _print_table(summary, (*_SUMMARY_KEYS, "geometry", "verified_ok", "min_clearance_mm"))
+        _print_not_reached(summary)
         for run_nf in report.non_finite[:max_events]:
             click.echo(
                 f"  non-finite joint angles: positioner {run_nf.positioner_id} from t = {run_nf.t_first_s:.3f} s to "

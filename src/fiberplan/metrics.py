@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from fiberplan.kinematics import fiber_positions, move_times
-from fiberplan.outcomes import count
+from fiberplan.outcomes import count, explain
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult, RunFile, Trajectory
 from fiberplan.verify import VerificationReport
@@ -89,6 +89,7 @@ def _summarize(result: PlanResult | RunFile, report: VerificationReport | None) 
     start_xy = fiber_positions(scenario.instrument, scenario.base_xy, scenario.orient, scenario.start)
     final_xy = fiber_positions(scenario.instrument, scenario.base_xy, scenario.orient, trajectory.joints[-1])
     moved = ~(np.linalg.norm(final_xy - start_xy, axis=-1) <= scenario.instrument.tolerance_mm)
+    infeasible = np.isin(np.arange(scenario.n_positioners), list(scenario.infeasible))
     summary: dict[str, Any] = {
         "planner": result.planner,
         "instrument": scenario.instrument.name,
@@ -97,12 +98,14 @@ def _summarize(result: PlanResult | RunFile, report: VerificationReport | None) 
         "seed": scenario.seed,
         "reached": int(reached.sum()),
         "targets": n_targets,
-        "held": int(np.sum(~scenario.has_target & ~moved)),
+        "held": int(np.sum(~scenario.has_target & ~scenario.locked & ~infeasible & ~moved)),
         "success_rate": float(reached.sum() / n_targets) if n_targets else 1.0,
         "deadlocked": counts["deadlocked"],
         "unfinished": counts["unfinished"],
         "failed": counts["failed"],
-        "displaced": int(np.sum(~scenario.has_target & moved)),
+        "displaced": int(np.sum(~scenario.has_target & ~scenario.locked & ~infeasible & moved)),
+        "infeasible": int(infeasible.sum()),
+        "locked": int(scenario.locked.sum()),
         "makespan_s": makespan,
         "lower_bound_s": bound,
         "makespan_over_bound": makespan / bound if bound > 0 else float("nan"),
@@ -112,6 +115,8 @@ def _summarize(result: PlanResult | RunFile, report: VerificationReport | None) 
         "path_length_mm_total": float(paths.sum()),
         "energy_rad2_s": energy(trajectory),
     }
+    summary["not_reached"] = explain(scenario, trajectory.joints[-1], np.asarray(result.outcome)) if np.isfinite(
+        trajectory.joints[-1]).all() else {}
     if report is not None:
         summary.update(
             {

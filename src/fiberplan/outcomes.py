@@ -47,6 +47,41 @@ def outcome_labels(scenario: Scenario, final_joints: np.ndarray, stuck: np.ndarr
     start_xy = fiber_positions(inst, scenario.base_xy, scenario.orient, scenario.start)
     moved = np.linalg.norm(final_xy - start_xy, axis=1) > inst.tolerance_mm
     out[~scenario.has_target] = np.where(moved[~scenario.has_target], "displaced", "held")
+    out[list(scenario.infeasible)] = "infeasible"
+    out[scenario.locked] = "locked"
+    return out
+
+
+def explain(scenario: Scenario, final_joints: np.ndarray, outcome: np.ndarray) -> dict[int, str]:
+    """Why, for every positioner not ``reached`` (keyed by id): the infeasibility reason; for
+    ``deadlocked`` and ``unfinished`` ones the neighbour closest to it at the end, with the
+    clearance (who it is stuck against); for ``displaced`` ones how far from their start."""
+    from fiberplan.geometry import min_pair_clearance
+
+    inst = scenario.instrument
+    out: dict[int, str] = {}
+    pairs = scenario.pairs
+    clearance = min_pair_clearance(inst, scenario.base_xy, scenario.orient, final_joints, pairs) if len(pairs) else np.zeros(0)
+    final_xy = fiber_positions(inst, scenario.base_xy, scenario.orient, final_joints)
+    for k in np.flatnonzero(outcome != "reached").tolist():
+        kind = str(outcome[k])
+        pid = int(scenario.ids[k])
+        if kind == "infeasible":
+            out[pid] = f"infeasible: {scenario.infeasible.get(k, '')}"
+        elif kind in ("deadlocked", "unfinished", "failed"):
+            togo = float(np.linalg.norm(final_xy[k] - scenario.target_xy[k]))
+            rows = np.flatnonzero((pairs == k).any(axis=1)) if len(pairs) else np.zeros(0, dtype=int)
+            what = {"deadlocked": "no progress for a window", "unfinished": "still moving at the time limit",
+                    "failed": "the planner failed"}[kind]
+            if len(rows):
+                r = rows[np.argmin(clearance[rows])]
+                other = int(scenario.ids[pairs[r, 1] if pairs[r, 0] == k else pairs[r, 0]])
+                out[pid] = f"{kind}: {what}, {togo:.3g} mm from its target, closest to positioner {other} ({clearance[r]:.3g} mm)"
+            else:
+                out[pid] = f"{kind}: {what}, {togo:.3g} mm from its target"
+        elif kind == "displaced":
+            start_xy = fiber_positions(inst, scenario.base_xy[[k]], scenario.orient[[k]], scenario.start[[k]])[0]
+            out[pid] = f"displaced: no target, ends {float(np.linalg.norm(final_xy[k] - start_xy)):.3g} mm from its start"
     return out
 
 

@@ -56,7 +56,7 @@ MAX_SEED = 2**63 - 1
 """Seeds are stored as signed 64-bit integers (HDF5 attributes)."""
 
 SCENARIO_KEYS = ("format", "version", "name", "kind", "seed", "instrument", "meta", "positioners")
-POSITIONER_KEYS = ("id", "x_mm", "y_mm", "orient_deg", "start_deg", "target")
+POSITIONER_KEYS = ("id", "x_mm", "y_mm", "orient_deg", "start_deg", "target", "locked")
 JOINT_TARGET_KEYS = ("alpha_deg", "beta_deg")
 XY_TARGET_KEYS = ("x_mm", "y_mm", "parity")
 
@@ -79,8 +79,14 @@ class Scenario:
         instrument_preset: the preset name when the instrument is a preset (files then
             store the name); ``None`` stores the full geometry.
         meta: free-form, JSON-serialisable.
-        validate_collisions: check that the start and goal configurations are collision-free
-            (default); the verifier turns it off to check a file against another geometry.
+        locked: ``(N,)`` positioners that cannot move (static obstacles for everyone);
+            default none.
+        validate_collisions: check that the start configuration is collision-free (default);
+            the verifier turns it off to check a file against another geometry.
+
+    Targets that cannot be reached at all do not reject the scenario: they are listed in
+    :attr:`infeasible` with the reason (and the other positioner's id), and those positioners
+    hold still while everyone else is planned.
 
     Raises:
         ScenarioError: on any invalid positioner; the message names its id and the fix.
@@ -99,6 +105,7 @@ class Scenario:
     seed: int | None = None
     instrument_preset: str | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    locked: np.ndarray | None = None
     validate_collisions: InitVar[bool] = True
 
     def __post_init__(self, validate_collisions: bool) -> None:
@@ -115,7 +122,10 @@ class Scenario:
             ("target_kind", np.int64),
             ("target_values", float),
             ("target_parity", np.int64),
+            ("locked", bool),
         ):
+            if attr == "locked" and self.locked is None:
+                object.__setattr__(self, "locked", np.zeros(len(np.atleast_1d(self.ids)), dtype=bool))
             try:
                 value = np.array(getattr(self, attr), dtype=dtype)
             except (TypeError, ValueError, OverflowError) as e:
@@ -146,14 +156,29 @@ class Scenario:
         return neighbour_pairs(self.instrument, self.base_xy)
 
     @cached_property
-    def has_target(self) -> np.ndarray:
-        """Which positioners have a target (the others should hold still)."""
+    def wants_target(self) -> np.ndarray:
+        """Which positioners were given a target (feasible or not)."""
         return self.target_kind != TARGET_NONE
 
     @cached_property
+    def has_target(self) -> np.ndarray:
+        """Which positioners have a feasible target (the others hold still: no target, locked, infeasible)."""
+        return self.wants_target & ~self.locked & ~np.isin(np.arange(self.n_positioners), list(self.infeasible))
+
+    @cached_property
     def target(self) -> np.ndarray:
-        """Goal joint angles ``(N, 2)`` (rad); the start for positioners without target."""
-        return self._resolve_targets()
+        """Goal joint angles ``(N, 2)`` (rad); the start for positioners without a feasible target."""
+        return self._goals[0]
+
+    @cached_property
+    def infeasible(self) -> dict[int, str]:
+        """Rows whose target cannot be reached at all, with the reason (naming the other positioner)."""
+        return self._goals[1]
+
+    @cached_property
+    def _goals(self) -> tuple[np.ndarray, dict[int, str]]:
+        goal = self._resolve_targets()
+        return goal, self._feasibility(goal)
 
     @cached_property
     def target_xy(self) -> np.ndarray:
@@ -183,6 +208,58 @@ class Scenario:
             goal[xy_rows] = np.where((parity == 0)[:, None], best, fixed)
             self._untangle_free_parities(goal, xy_rows[parity == 0])
         return goal
+
+    def _feasibility(self, goal: np.ndarray) -> dict[int, str]:
+        """Mark, in place on ``goal`` (set back to the start), every target that cannot be reached
+        at all, and return the reasons: a locked positioner given a target; a target beyond a hard
+        stop, outside the patrol region or unreachable with its parity; a goal that collides with
+        another goal (both of the pair), or with a positioner that holds at its start (locked,
+        without a target, or infeasible itself; repeated until no goal collides)."""
+        inst = self.instrument
+        reasons: dict[int, str] = {}
+        ids = self.ids
+        lim_deg = np.degrees(inst.limits_rad)
+        for k in np.flatnonzero(self.wants_target & self.locked):
+            reasons[int(k)] = "locked: it cannot move"
+        for k in np.flatnonzero((self.target_kind == TARGET_JOINTS) & ~inst.within_limits(goal)):
+            reasons.setdefault(int(k), f"target joints {np.round(self.target_values[k], 4).tolist()} deg are beyond a hard stop "
+                                       f"(alpha {lim_deg[0].tolist()}, beta {lim_deg[1].tolist()} deg)")
+        for k in np.flatnonzero((self.target_kind == TARGET_XY) & np.isnan(goal).any(axis=1)):
+            radius = float(np.hypot(*(self.target_values[k] - self.base_xy[k])))
+            lo, hi = inst.reach_min_mm, inst.reach_max_mm
+            if not (lo - 1e-9 <= radius <= hi + 1e-9):
+                why = f"target is {radius:.4f} mm from its base, outside the patrol region [{lo:.4f}, {hi:.4f}] mm"
+            else:
+                why = f"target cannot be reached with parity {self.target_parity[k]} inside the hard stops"
+            reasons.setdefault(int(k), why)
+        rows = list(reasons)
+        goal[rows] = self.start[rows]
+        pairs = self.pairs
+        for _ in range(self.n_positioners + 1):
+            if len(pairs) == 0:
+                break
+            clearance = min_pair_clearance(inst, self.base_xy, self.orient, goal, pairs)
+            hit = np.flatnonzero(clearance < 0.0)
+            if len(hit) == 0:
+                break
+            moving = self.wants_target & ~self.locked & ~np.isin(np.arange(self.n_positioners), list(reasons))
+            new: dict[int, str] = {}
+            for r in hit.tolist():
+                i, j = int(pairs[r, 0]), int(pairs[r, 1])
+                if moving[i] and moving[j]:
+                    for a, b in ((i, j), (j, i)):
+                        new.setdefault(a, f"target collides with positioner {ids[b]}'s target (overlap {-clearance[r]:.4f} mm)")
+                else:
+                    for a, b in ((i, j), (j, i)):
+                        if moving[a]:
+                            what = "locked" if self.locked[b] else ("without a target" if not self.wants_target[b] else "itself held")
+                            new.setdefault(a, f"target collides with positioner {ids[b]} ({what}, holding at its start; "
+                                              f"overlap {-clearance[r]:.4f} mm)")
+            if not new:  # two positioners both holding at their starts: a start collision, refused elsewhere
+                break
+            reasons.update(new)
+            goal[list(new)] = self.start[list(new)]
+        return dict(sorted(reasons.items()))
 
     def _untangle_free_parities(self, goal: np.ndarray, free_rows: np.ndarray) -> None:
         """Flip free-parity targets whose faster solution collides with a neighbour's goal.
@@ -262,10 +339,10 @@ class Scenario:
                 f"positioner {self.ids[k]}: start joints {self.start_deg[k].tolist()} deg are beyond a hard stop; "
                 f"alpha must lie in {lim_deg[0].tolist()} deg and beta in {lim_deg[1].tolist()} deg"
             )
-        self._validate_targets()
+        if self.locked.shape != (n,):
+            raise ScenarioError(f"scenario array locked has shape {self.locked.shape}, expected {(n,)}")
         if validate_collisions:
             self._validate_collisions(self.start, "start configuration")
-            self._validate_collisions(self.target, "goal configuration")
 
     def _validate_spacing(self) -> None:
         """Bases closer than the instrument allows (two positioners on one base among them)."""
@@ -283,36 +360,6 @@ class Scenario:
                 f"positioners {self.ids[i]} and {self.ids[j]}: bases {gaps[k]:.4g} mm apart, closer than the "
                 f"{limit:.4g} mm instrument {self.instrument.name!r} allows ({len(close)} such pair(s)); "
                 "check the layout (duplicated rows, units) or set [geometry] min_base_distance_mm in the instrument file"
-            )
-
-    def _validate_targets(self) -> None:
-        inst = self.instrument
-        goal = self.target
-        lim_deg = np.degrees(inst.limits_rad)
-        joints_rows = self.target_kind == TARGET_JOINTS
-        bad = np.flatnonzero(joints_rows & ~inst.within_limits(goal))
-        if len(bad):
-            k = bad[0]
-            raise ScenarioError(
-                f"positioner {self.ids[k]}: target joints {self.target_values[k].tolist()} deg are beyond a hard stop; "
-                f"alpha must lie in {lim_deg[0].tolist()} deg and beta in {lim_deg[1].tolist()} deg"
-            )
-        xy_rows = self.target_kind == TARGET_XY
-        bad = np.flatnonzero(xy_rows & np.isnan(goal).any(axis=1))
-        if len(bad):
-            k = bad[0]
-            radius = float(np.hypot(*(self.target_values[k] - self.base_xy[k])))
-            lo, hi = inst.reach_min_mm, inst.reach_max_mm
-            if not (lo - 1e-9 <= radius <= hi + 1e-9):
-                raise ScenarioError(
-                    f"positioner {self.ids[k]}: target ({self.target_values[k][0]:.4f}, {self.target_values[k][1]:.4f}) mm "
-                    f"is {radius:.4f} mm from its base, outside the patrol region [{lo:.4f}, {hi:.4f}] mm; "
-                    "give a target inside the patrol region or assign it to another positioner"
-                )
-            raise ScenarioError(
-                f"positioner {self.ids[k]}: target ({self.target_values[k][0]:.4f}, {self.target_values[k][1]:.4f}) mm "
-                f"cannot be reached with parity {self.target_parity[k]} inside the hard stops; "
-                "use the other parity or leave parity out (0) to let fiberplan choose"
             )
 
     def _validate_collisions(self, joints: np.ndarray, what: str) -> None:
@@ -353,6 +400,7 @@ class Scenario:
                     "orient_deg": float(self.orient_deg[k]),
                     "start_deg": [float(self.start_deg[k, 0]), float(self.start_deg[k, 1])],
                     "target": target,
+                    **({"locked": True} if self.locked[k] else {}),
                 }
             )
         return {
@@ -374,6 +422,15 @@ class Scenario:
             tmp.write_text(text + "\n", encoding="utf-8")
         return path
 
+    def subset(self, rows: Any, name: str | None = None) -> Scenario:
+        """The scenario of the positioners at ``rows`` only (indices or a mask), validated again."""
+        r = np.arange(self.n_positioners)[np.asarray(rows)]
+        return _replace(
+            self, ids=self.ids[r], base_xy=self.base_xy[r], orient_deg=self.orient_deg[r], start_deg=self.start_deg[r],
+            target_kind=self.target_kind[r], target_values=self.target_values[r], target_parity=self.target_parity[r],
+            locked=self.locked[r], name=self.name if name is None else name,
+        )
+
     def with_instrument(self, instrument: Instrument, preset: str | None = None) -> Scenario:
         """The same positioners, starts and targets on another instrument (validated again).
 
@@ -391,7 +448,7 @@ def _replace(scenario: Scenario, **changes: Any) -> Scenario:
         name: getattr(scenario, name)
         for name in (
             "instrument", "ids", "base_xy", "orient_deg", "start_deg", "target_kind", "target_values",
-            "target_parity", "name", "kind", "seed", "instrument_preset", "meta",
+            "target_parity", "name", "kind", "seed", "instrument_preset", "meta", "locked",
         )
     }
     fields.update(changes)
@@ -438,6 +495,7 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
     kind = np.zeros(n, dtype=np.int64)
     values = np.zeros((n, 2))
     parity = np.zeros(n, dtype=np.int64)
+    locked = np.zeros(n, dtype=bool)
     for k, row in enumerate(rows):
         if not isinstance(row, dict):
             raise ScenarioError(f"{origin}: positioner #{k}: each entry of 'positioners' must be an object")
@@ -451,6 +509,10 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
             if not isinstance(start_row, list) or len(start_row) != 2:
                 raise ValueError("start_deg must be a list [alpha_deg, beta_deg]")
             start[k] = (_as_float(start_row[0]), _as_float(start_row[1]))
+            lock = row.get("locked", False)
+            if not isinstance(lock, bool):
+                raise ValueError(f"locked must be true or false, found {lock!r}")
+            locked[k] = lock
             target = row.get("target")
             if target is None:
                 kind[k] = TARGET_NONE
@@ -498,6 +560,7 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
             seed=seed,
             instrument_preset=preset,
             meta=dict(meta or {}),
+            locked=locked,
         )
     except ScenarioError as e:
         raise ScenarioError(f"{origin}: {e}") from e

@@ -31,7 +31,7 @@ CENTRAL = "central"
 
 ROW_COLUMNS = (
     "task", "planner", "instrument", "n_positioners", "scenario_kind", "seed", "scenario", "settings_json", "status", "error",
-    "targets", "reached", "success_rate", "held", "deadlocked", "unfinished", "failed", "displaced",
+    "targets", "reached", "success_rate", "held", "deadlocked", "unfinished", "failed", "displaced", "infeasible", "locked",
     "collisions", "limit_violations", "verified_ok", "clean", "min_clearance_mm",
     "makespan_s", "lower_bound_s", "makespan_over_bound", "duration_s", "plan_wall_s", "path_length_mm_mean", "path_length_mm_total",
     "energy_rad2_s", "solver_status", "solver_iterations", "solver_s", "warm_start",

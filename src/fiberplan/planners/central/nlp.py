@@ -282,6 +282,7 @@ def _solve_nlp(problem: _Problem, active: np.ndarray, guess_q: np.ndarray, guess
     hi_q = np.tile(lim[:, 1], (T + 1) * n).reshape(T + 1, n, 2)
     lo_q[0] = hi_q[0] = sc.start
     lo_q[T] = hi_q[T] = sc.target
+    lo_q[:, sc.locked] = hi_q[:, sc.locked] = sc.start[sc.locked]  # locked positioners never move
     if problem.tau_fixed is None:
         tau_lo, tau_hi = 1.0 - 1e-9, st.max_makespan_factor
     else:

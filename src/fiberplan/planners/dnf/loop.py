@@ -119,6 +119,7 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
         step, clear0, snap, n_repelled = _desired_step(scenario, settings, model, culling, q, escape, rho_reach)
         repulsion_active_steps += n_repelled
         snap_step = step[snap]
+        step[scenario.locked] = 0.0  # locked positioners never move
         bad_step = ~np.isfinite(step).all(axis=1)  # a non-finite gradient holds the positioner
         if bad_step.any():
             step[bad_step] = 0.0

@@ -238,7 +238,7 @@ class Deadlocks:
     def priorities(self, ttg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(rank, boosted)``: deadlocked positioners first (sticky order), then the longest time-to-go."""
         boosted = self.level >= Level.TOP_PRIORITY
-        return ranks(boosted, self.first_dead, ttg), boosted
+        return ranks(boosted, self.first_dead, ttg, self.scenario.locked), boosted
 
     def yielders(self, step: int, sel_pairs: np.ndarray, rank: np.ndarray, boosted: np.ndarray) -> np.ndarray:
         """Who folds its beta arm this step: a lower-priority neighbour in conflict with a

@@ -151,6 +151,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # Snap onto the goal when within a small fraction of a step of it.
             near = np.all(np.abs(goal - q_next) <= 0.05 * step_rad, axis=1) & np.all(np.abs(goal - q) <= step_rad, axis=1)
             q_next[near] = goal[near]
+            q_next[scenario.locked] = q[scenario.locked]  # locked positioners never move
             # A non-finite step (none is known to arise: every QP solution is checked) holds.
             bad_step = ~np.isfinite(q_next).all(axis=1)
             if bad_step.any():

@@ -20,11 +20,13 @@ def outranks(a: np.ndarray, b: np.ndarray, rank: np.ndarray, defer_to: np.ndarra
     return np.where(defer_to[a] == b, False, res)
 
 
-def ranks(boosted: np.ndarray, first_dead: np.ndarray, time_to_go: np.ndarray) -> np.ndarray:
-    """Rank of every positioner (0 first): boosted ones first (by when they were first found
-    deadlocked), then the longest time-to-go, then the index."""
+def ranks(boosted: np.ndarray, first_dead: np.ndarray, time_to_go: np.ndarray, locked: np.ndarray | None = None) -> np.ndarray:
+    """Rank of every positioner (0 first): locked ones (static obstacles: everyone yields to
+    them), then boosted ones (by when they were first found deadlocked), then the longest
+    time-to-go, then the index."""
     n = len(boosted)
-    order = np.lexsort((np.arange(n), -time_to_go, np.where(boosted, first_dead, 0), ~boosted))
+    locked = np.zeros(n, dtype=bool) if locked is None else locked
+    order = np.lexsort((np.arange(n), -time_to_go, np.where(boosted, first_dead, 0), ~boosted, ~locked))
     rank = np.empty(n, dtype=np.int64)
     rank[order] = np.arange(n)
     return rank
