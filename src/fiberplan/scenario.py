@@ -105,7 +105,7 @@ class Scenario:
     seed: int | None = None
     instrument_preset: str | None = None
     meta: dict[str, Any] = field(default_factory=dict)
-    locked: np.ndarray | None = None
+    locked: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     validate_collisions: InitVar[bool] = True
 
     def __post_init__(self, validate_collisions: bool) -> None:
@@ -124,7 +124,7 @@ class Scenario:
             ("target_parity", np.int64),
             ("locked", bool),
         ):
-            if attr == "locked" and self.locked is None:
+            if attr == "locked" and np.size(self.locked) == 0:  # default: none locked
                 object.__setattr__(self, "locked", np.zeros(len(np.atleast_1d(self.ids)), dtype=bool))
             try:
                 value = np.array(getattr(self, attr), dtype=dtype)
