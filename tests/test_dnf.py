@@ -47,7 +47,7 @@ def _check(scenario, result):
 )
 def test_dnf_is_collision_free_and_within_limits(instrument, n, kind, seed):
     scenario = make_scenario(instrument, n, kind, seed)
-    result = plan(scenario, "dnf")
+    result = plan(scenario, "dnf", {"route": "direct"})
     _check(scenario, result)
     assert result.planner == "dnf"
     assert set(result.outcome.tolist()) <= {"reached", "deadlocked", "unfinished", "held"}
@@ -89,7 +89,7 @@ def test_dnf_reaches_desi_targets():
     rates = []
     for seed in range(3):
         scenario = make_scenario("desi", 19, "random", seed)
-        result = plan(scenario, "dnf")
+        result = plan(scenario, "dnf", {"route": "direct"})
         report = _check(scenario, result)
         summary = summarize(result, report)
         rates.append(summary["success_rate"])
@@ -99,7 +99,7 @@ def test_dnf_reaches_desi_targets():
 
 def test_reached_positioners_hold_their_target_joints_exactly():
     scenario = make_scenario("desi", 7, "random", 0)
-    result = plan(scenario, "dnf")
+    result = plan(scenario, "dnf", {"route": "direct"})
     reached = result.outcome == "reached"
     assert reached.all()
     assert np.array_equal(result.trajectory.joints[-1][reached], scenario.target[reached])
@@ -135,7 +135,7 @@ def test_overlapping_envelopes_deadlock_and_are_marked():
     # Reference 000's potential with targets closer than D: the repulsion at the targets is
     # not zero, so both settle off target (a local minimum); the planner must say so and stop.
     scenario = _overlapping_targets()
-    result = plan(scenario, "dnf", {"goal_envelope_cap": False, "lambda_repel": 36.0, "deadlock_escape": "none"})
+    result = plan(scenario, "dnf", {"goal_envelope_cap": False, "lambda_repel": 36.0, "deadlock_escape": "none", "route": "direct"})
     _check(scenario, result)
     assert result.outcome.tolist() == ["deadlocked", "deadlocked"]
     assert result.stats["n_deadlocked"] == 2
@@ -145,14 +145,14 @@ def test_overlapping_envelopes_deadlock_and_are_marked():
 
 def test_goal_envelope_cap_removes_that_minimum():
     scenario = _overlapping_targets()
-    result = plan(scenario, "dnf")
+    result = plan(scenario, "dnf", {"route": "direct"})
     _check(scenario, result)
     assert result.outcome.tolist() == ["reached", "reached"]
 
 
 def test_time_limit_marks_moving_positioners_failed():
     scenario = make_scenario("desi", 7, "random", 0)
-    result = plan(scenario, "dnf", {"time_limit_s": 0.05})
+    result = plan(scenario, "dnf", {"time_limit_s": 0.05, "route": "direct"})
     _check(scenario, result)
     assert result.stats["time_limit_hit"]
     assert "unfinished" in result.outcome.tolist()
@@ -293,7 +293,7 @@ def test_bad_settings_are_rejected(overrides, match):
 def test_desi_500_meets_the_issue_target():
     # Issue 3, "done when": 500 DESI positioners, seed 1: zero collisions, success >= 0.99.
     scenario = make_scenario("desi", 500, "random", 1)
-    result = plan(scenario, "dnf")
+    result = plan(scenario, "dnf", {"route": "direct"})
     summary = summarize(result, _check(scenario, result))
     assert summary["collisions"] == 0
     assert summary["success_rate"] >= 0.99
@@ -303,6 +303,6 @@ def test_desi_500_meets_the_issue_target():
 @pytest.mark.parametrize("instrument", ["moons", "sdss"])
 def test_dnf_61_is_collision_free_on_long_arm_instruments(instrument):
     scenario = make_scenario(instrument, 61, "unfold" if instrument == "moons" else "random", 0)
-    result = plan(scenario, "dnf")
+    result = plan(scenario, "dnf", {"route": "direct"})
     _check(scenario, result)
     assert set(result.outcome.tolist()) <= {"reached", "deadlocked", "unfinished", "held"}

@@ -306,8 +306,8 @@ def test_run_stops_when_nothing_can_progress_and_loses_nothing():
     # reaches no more targets (here one fewer: the stuck one pushes an arrived neighbour off
     # its target).
     sc = make_scenario("desi", 500, "random", 9)
-    stopped = plan(sc, "mpc", {"start_schedule": False})
-    full = plan(sc, "mpc", {"start_schedule": False, "stop_after_stalled_windows": 0})
+    stopped = plan(sc, "mpc", {"start_schedule": False, "route": "direct"})
+    full = plan(sc, "mpc", {"start_schedule": False, "stop_after_stalled_windows": 0, "route": "direct"})
     assert stopped.stats["stopped_stalled"] and not full.stats["stopped_stalled"]
     assert stopped.stats["n_steps"] < full.stats["n_steps"]
     _check_safe(stopped)

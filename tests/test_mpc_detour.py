@@ -92,7 +92,7 @@ def test_pair_resolution_routes_are_clear_of_the_other(pair):
 
 def test_detours_resolve_a_pair_that_deadlocks_without_them(pair):
     sc, _, _ = pair
-    reactive = {"start_schedule": False}  # the loop alone, as on MOONS and SDSS
+    reactive = {"route": "direct", "start_schedule": False}  # the loop alone, as on MOONS and SDSS
     without = plan(sc, "mpc", {**reactive, "detours": False})
     assert np.all(without.outcome == "deadlocked")  # the failure the detours exist for
     result = plan(sc, "mpc", reactive)
@@ -101,7 +101,7 @@ def test_detours_resolve_a_pair_that_deadlocks_without_them(pair):
     report = verify(sc, result.trajectory)
     assert report.n_collisions == 0 and not report.limit_violations
     # DESI's start schedule orders this pair before either moves: no deadlock to resolve.
-    scheduled = plan(sc, "mpc", {"start_schedule": True, "detours": False})
+    scheduled = plan(sc, "mpc", {"start_schedule": True, "detours": False, "route": "direct"})
     assert np.all(scheduled.outcome == "reached")
     assert scheduled.stats["schedule_delayed"] == 1 and scheduled.stats["deadlocks_detected"] == 0
     report = verify(sc, scheduled.trajectory)

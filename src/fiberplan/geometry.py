@@ -14,10 +14,12 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from fiberplan.instrument import Instrument
+from fiberplan.kinematics import straight_path
 
 _EPS = 1e-12  # distances below this (mm) count as contact for gradients
 
@@ -327,3 +329,25 @@ def min_pair_clearance(
     if len(pairs) == 0:
         return np.zeros((*joints.shape[:-2], 0))
     return pair_clearance(instrument, base_xy, orient, joints, pairs).clearance.min(axis=-1)
+
+
+def path_clearance(
+    scenario: Any, mover: np.ndarray, other: np.ndarray, q_from: np.ndarray, q_to: np.ndarray, q_other: np.ndarray,
+    step_rad: np.ndarray, stride: int = 2,
+) -> np.ndarray:
+    """Smallest clearance of ``mover`` along its saturated path ``q_from -> q_to`` to ``other`` held at ``q_other``.
+
+    All arrays are row-matched (one row per directed pair); the path is sampled every ``stride``
+    control steps and at its end.
+    """
+    if len(mover) == 0:
+        return np.zeros(0)
+    n_steps = int(np.ceil(np.max(np.abs(q_to - q_from) / step_rad, initial=0.0))) + 1
+    path = straight_path(q_from, q_to, stride * step_rad, max(1, int(np.ceil(n_steps / stride))))  # (M, K, 2)
+    k = path.shape[1]
+    c = clearance_between(
+        scenario.instrument,
+        np.repeat(scenario.base_xy[mover], k, axis=0), np.repeat(scenario.orient[mover], k), path.reshape(-1, 2),
+        np.repeat(scenario.base_xy[other], k, axis=0), np.repeat(scenario.orient[other], k), np.repeat(q_other, k, axis=0),
+    ).min(axis=-1)
+    return c.reshape(-1, k).min(axis=1)

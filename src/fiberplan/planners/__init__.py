@@ -10,7 +10,7 @@ import dataclasses
 import importlib
 import time
 from collections.abc import Callable, Mapping
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 from fiberplan._keys import unknown_key_message
 from fiberplan._registry import PLANNERS, planner_names
@@ -116,6 +116,26 @@ def plan(
     # planned first, with their defaults; their wall time is not the planner's.
     warm = [plan(scenario, name) for name in getattr(settings, "warm_planners", ())]
     t0 = time.perf_counter()
+    route = getattr(settings, "route", "direct")
+    if route != "direct":
+        # The coordination layer plans the legs with this planner alone (route = direct).
+        coordination = importlib.import_module("fiberplan.planners.coordination")
+        direct: Any = dataclasses.replace(cast(Any, settings), route="direct")
+
+        fallback = getattr(settings, "route_fallback_planner", None)
+
+        def plan_leg(leg: Scenario, time_limit_s: float | None = None, use_fallback: bool = False) -> PlanResult:
+            if use_fallback and fallback:
+                other_func, _ = _lookup(fallback)
+                other = dataclasses.replace(make_settings(fallback, leg, {"route": "direct"}), time_limit_s=time_limit_s)
+                return other_func(leg, other, None)
+            leg_settings = direct if time_limit_s is None else dataclasses.replace(direct, time_limit_s=time_limit_s)
+            return func(leg, leg_settings, None)
+
+        result = coordination.coordinate(scenario, planner, settings, plan_leg, t0)
+        if progress is not None:
+            progress(1.0)
+        return result
     result = func(scenario, settings, progress, warm_results=warm) if warm else func(scenario, settings, progress)
     wall = time.perf_counter() - t0
     return dataclasses.replace(result, plan_wall_s=wall)

@@ -91,6 +91,14 @@ class DnfSettings:
                                      group="deadlocks")
     retreat_s: float = setting(0.5, "duration of a retreat", unit="s", low=0.0, high=1e5, low_open=True, group="deadlocks")
     max_retreats: int = setting(3, "retreats per positioner and run", low=0, high=1000, group="deadlocks")
+    # --- the route (fiberplan.planners.coordination)
+    route: str = setting("auto", "how the move is planned: the planner alone (direct), reversed, through the datum, or chosen by "
+                         "the scenario's structure (auto)", choices=("direct", "reverse", "via_datum", "via_fold", "auto"), group="route")
+    route_attempts: int = setting(4, "attempts per leg: each from where the previous one stopped, until every positioner arrives",
+                                  low=1, high=50, group="route")
+    route_fallback_planner: str | None = setting("mpc", "the planner of a leg's last attempt when this one stalls (null: none, "
+                                                 "for studies of this planner alone)", choices=("mpc", "dnf", None), optional=True,
+                                                 group="route")
     # --- run length
     time_limit_s: float | None = setting(None, "stop here at the latest (null: 4 x the lower bound plus two deadlock windows)",
                                          unit="s", low=0.0, high=1e5, low_open=True, optional=True, group="run", kind="float")

@@ -91,7 +91,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
 
     move = np.max(np.abs(goal_final - scenario.start) / inst.speeds_rad_s, axis=1)
     bound_s = float(move[scenario.has_target].max()) if np.any(scenario.has_target) else 0.0
-    limit_s = settings.max_duration_factor * bound_s + settings.max_duration_extra_s
+    limit_s = settings.max_duration_factor * bound_s + settings.max_duration_extra_s if settings.time_limit_s is None else settings.time_limit_s
     max_steps = int(np.ceil(limit_s / h))
     check_step_budget("mpc", max_steps, h, limit_s)
 

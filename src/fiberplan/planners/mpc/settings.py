@@ -34,6 +34,8 @@ class MpcSettings:
                                          low_open=True, group="run")
     max_duration_extra_s: float = setting(1.0, "... plus this long (instrument default: one turn of the slower joint)", unit="s",
                                           low=0.0, high=1e5, group="run")
+    time_limit_s: float | None = setting(None, "stop here at the latest, replacing the two settings above (null: use them)", unit="s",
+                                         low=0.0, high=1e5, low_open=True, optional=True, group="run", kind="float")
     stop_after_stalled_windows: int = setting(8, "stop once nothing not at its target has progressed for this many deadlock windows "
                                               "(0: never)", unit="windows", low=0, high=1000, group="run")
     # --- the QP
@@ -89,6 +91,14 @@ class MpcSettings:
                                        low=1, high=1000, group="schedule")
     schedule_repair: bool = setting(True, "a positioner no timed path fits goes first; a placed neighbour is placed again after it",
                                     group="schedule")
+    # --- the route (fiberplan.planners.coordination)
+    route: str = setting("auto", "how the move is planned: the planner alone (direct), reversed, through the datum, or chosen by "
+                         "the scenario's structure (auto)", choices=("direct", "reverse", "via_datum", "via_fold", "auto"), group="route")
+    route_attempts: int = setting(4, "attempts per leg: each from where the previous one stopped, until every positioner arrives",
+                                  low=1, high=50, group="route")
+    route_fallback_planner: str | None = setting("dnf", "the planner of a leg's last attempt when this one stalls (null: none, "
+                                                 "for studies of this planner alone)", choices=("mpc", "dnf", None), optional=True,
+                                                 group="route")
     # --- the solver
     executor: str = setting("sequential", "where the QPs are solved", choices=("sequential", "parallel"), group="solver")
     workers: int = setting(2, "processes of the parallel executor (the planning process counts as one)", low=1, high=256,

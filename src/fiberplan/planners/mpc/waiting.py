@@ -5,31 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from fiberplan.geometry import clearance_between
-from fiberplan.kinematics import straight_path
+from fiberplan.geometry import path_clearance
 from fiberplan.scenario import Scenario
 
-
-def path_clearance(
-    scenario: Scenario, mover: np.ndarray, other: np.ndarray, q_from: np.ndarray, q_to: np.ndarray, q_other: np.ndarray,
-    step_rad: np.ndarray, stride: int = 2,
-) -> np.ndarray:
-    """Smallest clearance of ``mover`` along its saturated path ``q_from -> q_to`` to ``other`` held at ``q_other``.
-
-    All arrays are row-matched (one row per directed pair); the path is sampled every ``stride``
-    control steps and at its end.
-    """
-    if len(mover) == 0:
-        return np.zeros(0)
-    n_steps = int(np.ceil(np.max(np.abs(q_to - q_from) / step_rad, initial=0.0))) + 1
-    path = straight_path(q_from, q_to, stride * step_rad, max(1, int(np.ceil(n_steps / stride))))  # (M, K, 2)
-    k = path.shape[1]
-    c = clearance_between(
-        scenario.instrument,
-        np.repeat(scenario.base_xy[mover], k, axis=0), np.repeat(scenario.orient[mover], k), path.reshape(-1, 2),
-        np.repeat(scenario.base_xy[other], k, axis=0), np.repeat(scenario.orient[other], k), np.repeat(q_other, k, axis=0),
-    ).min(axis=-1)
-    return c.reshape(-1, k).min(axis=1)
+__all__ = ["path_clearance", "waiting_configuration"]
 
 
 def waiting_configuration(
