@@ -12,6 +12,7 @@ PLANNERS: dict[str, tuple[str, str, str]] = {
     "mpc": ("fiberplan.planners.mpc", "plan_mpc", "MpcSettings"),
     "dnf": ("fiberplan.planners.dnf", "plan_dnf", "DnfSettings"),
     "central": ("fiberplan.planners.central", "plan_central", "CentralSettings"),
+    "prioritized": ("fiberplan.planners.prioritized", "plan_prioritized", "PrioritizedSettings"),
 }
 
 

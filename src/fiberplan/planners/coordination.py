@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from fiberplan.geometry import motion_bound, path_clearance, point_extents
+from fiberplan.geometry import min_pair_clearance, motion_bound, path_clearance, point_extents
 from fiberplan.metrics import arrival_times, reached_mask
 from fiberplan.outcomes import outcome_labels
 from fiberplan.scenario import TARGET_JOINTS, TARGET_NONE, Scenario, _replace
@@ -82,14 +82,14 @@ def _at(scenario: Scenario, joints: np.ndarray) -> np.ndarray:
 
 
 def _complete(
-    leg: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None = None, unblock: bool = True,
+    leg: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None = None, unblock: bool = True, strict: bool = True,
 ) -> tuple[np.ndarray, int, bool]:
     """Plan ``leg``, then again from where each attempt stopped, until every positioner sits on
     its target, an attempt brings none closer, or ``time_limit_s`` of motion is used up. When an
     attempt stalls on folded neighbours in the way (a fold whose datum blocks the last ones),
     those neighbours are parked at another alpha, folded (:func:`_parking`), while the blocked
     ones arrive, and come back in the next attempt. Returns ``(joints (K, N, 2), attempts, complete)``."""
-    if leg.infeasible:  # a leg target that cannot be reached would break the joint between legs
+    if strict and leg.infeasible:  # a leg target that cannot be reached would break the joint between legs
         return leg.start[None].copy(), 0, False
     pieces: list[np.ndarray] = []
     current = leg
@@ -139,7 +139,7 @@ def _complete(
                     return np.concatenate(pieces), k + 1, True
                 break
             detour = dataclasses.replace(leg, start_deg=np.degrees(end), target_values=np.degrees(parked), name=f"{leg.name}:parked")
-            d_joints, _, _ = _complete(detour, plan_leg, 2, None, unblock=False)
+            d_joints, _, _ = _complete(detour, plan_leg, 2, None, unblock=False, strict=False)
             d_joints = _trim(d_joints)
             pieces.append(d_joints[1:])
             end = d_joints[-1]
@@ -242,7 +242,7 @@ def _reversed(joints: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------- strategies
 def _direct(scenario: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None = None) -> list[_Piece]:
     t0 = time.perf_counter()
-    joints, k, _ = _complete(scenario, plan_leg, attempts, time_limit_s)
+    joints, k, _ = _complete(scenario, plan_leg, attempts, time_limit_s, strict=False)
     return [_Piece("direct", joints, np.flatnonzero(scenario.has_target).tolist(), k, time.perf_counter() - t0)]
 
 
@@ -275,6 +275,33 @@ def _folded_midway(scenario: Scenario, start: np.ndarray) -> np.ndarray:
     return out
 
 
+def _clear_holds(scenario: Scenario, hold: np.ndarray, movers: np.ndarray) -> np.ndarray:
+    """The intermediate configuration with every mover whose datum collides with a positioner
+    holding still (locked, say) folded at another alpha instead, where it is clear."""
+    pairs = scenario.pairs
+    if not len(pairs):
+        return hold
+    lim = scenario.instrument.limits_rad
+    for _ in range(3):
+        clearance = min_pair_clearance(scenario.instrument, scenario.base_xy, scenario.orient, hold, pairs)
+        bad = np.flatnonzero(clearance < 0.0)
+        if not len(bad):
+            break
+        for r in bad.tolist():
+            for k in pairs[r].tolist():
+                if not movers[k]:
+                    continue
+                rows = np.flatnonzero((pairs == k).any(axis=1))
+                for cand in _park_candidates(hold[k], lim):
+                    trial = hold.copy()
+                    trial[k] = cand
+                    if np.all(min_pair_clearance(scenario.instrument, scenario.base_xy, scenario.orient, trial, pairs[rows]) > 0.0):
+                        hold[k] = cand
+                        break
+                break
+    return hold
+
+
 def _via_datum(scenario: Scenario, plan_leg: PlanLeg, attempts: int, start: np.ndarray | None = None,
                movers: np.ndarray | None = None, label: str = "", midway: bool = False) -> list[_Piece] | None:
     """Two legs through the datum (``midway``: through the folded configuration half-way in
@@ -285,7 +312,7 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, attempts: int, start: np.n
     movers = ~scenario.locked if movers is None else movers
     home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)  # where each must end
     safe = _folded_midway(scenario, start) if midway else _datum(scenario)
-    hold = np.where(movers[:, None], safe, start)
+    hold = _clear_holds(scenario, np.where(movers[:, None], safe, start), movers)
     t0 = time.perf_counter()
     fold = leg_scenario(scenario, start, hold, "fold")
     fold_joints, k1, complete = _complete(fold, plan_leg, attempts)

@@ -420,14 +420,14 @@ def _dask_results(
                 task = pending.pop(fut)
                 if fut.status == "finished":
                     try:
-                        yield fut.result(timeout=60)
+                        yield fut.result(timeout=min(60.0, no_worker_timeout_s))
                         continue
                     except Exception as e:  # the result could not be fetched: its worker went away
                         yield _lost_row(task, f"{type(e).__name__}: {e}")
                         continue
                 # run_task never raises: an error here is the machinery (a lost or killed worker)
                 try:
-                    detail = repr(fut.exception(timeout=10)) if fut.status == "error" else fut.status
+                    detail = repr(fut.exception(timeout=min(10.0, no_worker_timeout_s))) if fut.status == "error" else fut.status
                 except Exception as e:
                     detail = f"{type(e).__name__}: {e}"
                 yield _lost_row(task, f"Dask run {fut.status}: {detail}")

@@ -177,6 +177,8 @@ class StartScheduler:
             neighbour in turn leaves the schedule, the positioner searches its timed path around
             the others, and the neighbour is placed again after it (a delay, an L-shaped move or
             a timed path), or both are restored and the next neighbour is tried.
+        first: ``(N,)`` positioners scheduled before all others (reference 003's re-prioritisation
+            after a failure); within each group, the longest move first.
 
     The state is explicit: per positioner its ``delay``, its ``move`` (steps), its capsules at
     every step of its move as scheduled (``seg_start``, ``seg_end``), its ``corner`` (L-shaped
@@ -188,11 +190,12 @@ class StartScheduler:
     def __init__(
         self, scenario: Scenario, step_rad: np.ndarray, margin_mm: float, delay_steps: int = 4, slack: float = 1.2, stride: int = 2,
         max_options: int = 64, swap_tries: int = 1, l_paths: bool = False, space_time: bool = False, cell_steps: int = 2,
-        repair: bool = False,
+        repair: bool = False, first: np.ndarray | None = None,
     ) -> None:
         self.scenario, self.step_rad = scenario, step_rad
         self.delay_steps, self.max_options, self.swap_tries = delay_steps, max_options, swap_tries
         self.l_paths, self.space_time, self.cell_steps, self.repair = l_paths, space_time, cell_steps, repair
+        self.first = np.zeros(scenario.n_positioners, dtype=bool) if first is None else np.asarray(first, dtype=bool)
         self.inst = scenario.instrument
         n = self.n = scenario.n_positioners
         self.pairs = scenario.pairs
@@ -235,7 +238,7 @@ class StartScheduler:
         """Schedule every positioner (longest move first), then the fallbacks the settings turn on."""
         if self.n == 0 or len(self.pairs) == 0:
             return StartSchedule(self.delay, np.zeros(0, dtype=np.int64), 0, self.corner)
-        for i in np.lexsort((np.arange(self.n), -self.move)).tolist():
+        for i in np.lexsort((np.arange(self.n), -self.move, ~self.first)).tolist():
             d, js, options, ok = self._place(i)
             if d is None:
                 if self._swap(i, js, options, ok):

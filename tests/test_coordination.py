@@ -1,0 +1,130 @@
+"""The coordination layer (planners/coordination.py) and the pre-check of targets: every target
+reached through the problem's structure, one continuous verified trajectory, nothing dropped."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import fiberplan as fp
+from fiberplan.planners.coordination import leg_scenario
+from fiberplan.planners.mpc import plan_mpc
+from fiberplan.scenario import scenario_from_dict
+
+
+def _check(scenario, result):
+    report = fp.verify(scenario, result.trajectory)
+    assert report.ok, report.to_dict()["collision_events"][:2]
+    np.testing.assert_array_equal(result.trajectory.joints[0], scenario.start)
+    return fp.summarize(result, report)
+
+
+@pytest.mark.parametrize("planner", ["mpc", "dnf"])
+def test_unfold_is_the_reverse_of_a_fold(planner):
+    sc = fp.make_scenario("moons", 19, "unfold", 1)
+    result = fp.plan(sc, planner)
+    assert result.stats["route"] == "auto" and result.stats["chosen"] == "reverse"
+    summary = _check(sc, result)
+    assert summary["reached"] == summary["targets"] == 19
+    # Played backwards it is a fold from the targets: the same motion, reversed.
+    fold = fp.plan(leg_scenario(sc, sc.target, sc.start, "fold"), planner, {"route": "direct"})
+    np.testing.assert_array_equal(result.trajectory.joints, fold.trajectory.joints[::-1])
+
+
+def test_via_datum_passes_through_the_datum_and_reaches_every_target():
+    sc = fp.make_scenario("moons", 19, "random", 2)
+    result = fp.plan(sc, "mpc", {"route": "via_datum"})
+    summary = _check(sc, result)
+    assert summary["reached"] == 19
+    legs = result.stats["legs"]
+    assert [leg["leg"] for leg in legs] == ["fold to the datum", "unfold from the datum (planned from the targets)"]
+    k = int(round(legs[0]["t1_s"] / result.settings["dt_s"]))
+    datum = np.array(sc.instrument.datum_rad)
+    np.testing.assert_allclose(result.trajectory.joints[k], np.broadcast_to(datum, (19, 2)), atol=1e-12)
+    assert result.stats["n_via_datum"] == 19
+
+
+@pytest.mark.parametrize(("instrument", "n", "seed"), [("moons", 19, 0), ("sdss", 19, 1)])
+def test_auto_reaches_every_target_on_dense_instruments_and_is_never_worse_than_two_legs(instrument, n, seed):
+    sc = fp.make_scenario(instrument, n, "random", seed)
+    auto = fp.plan(sc, "mpc")
+    summary = _check(sc, auto)
+    assert summary["reached"] == summary["targets"]
+    two = fp.plan(sc, "mpc", {"route": "via_datum"})
+    assert summary["makespan_s"] <= fp.summarize(two)["makespan_s"] + 1e-9
+
+
+def test_auto_keeps_the_direct_plan_where_it_is_complete():
+    sc = fp.make_scenario("desi", 61, "random", 3)
+    auto = fp.plan(sc, "mpc")
+    alone = plan_mpc(sc, fp.make_settings("mpc", sc, {"route": "direct"}))
+    np.testing.assert_array_equal(auto.trajectory.joints, alone.trajectory.joints)
+    assert auto.stats["chosen"] == "direct" and auto.stats["qp_solves"] == alone.stats["qp_solves"]
+
+
+def test_the_reactive_mpc_alone_stays_selectable():
+    sc = fp.make_scenario("moons", 19, "random", 0)
+    settings = {"route": "direct", "start_schedule": False}
+    reactive = fp.plan(sc, "mpc", settings)
+    alone = plan_mpc(sc, fp.make_settings("mpc", sc, settings))
+    np.testing.assert_array_equal(reactive.trajectory.joints, alone.trajectory.joints)
+    assert "route" not in reactive.stats
+
+
+def _locked_infeasible_scenario():
+    sc = fp.make_scenario("moons", 19, "random", 5)
+    data = sc.to_dict()
+    rows = data["positioners"]
+    # Positioner 3 is locked where it starts; 7 has no target; 0 and 1 get targets that collide.
+    rows[3]["locked"] = True
+    rows[3]["target"] = None
+    rows[7]["target"] = None
+    a, b = rows[0], rows[1]
+    mid = [(a["x_mm"] + b["x_mm"]) / 2, (a["y_mm"] + b["y_mm"]) / 2]
+    a["target"] = {"x_mm": mid[0], "y_mm": mid[1]}
+    b["target"] = {"x_mm": mid[0] + 0.5, "y_mm": mid[1]}
+    return scenario_from_dict(data)
+
+
+def test_infeasible_pair_is_reported_before_planning_and_the_rest_is_planned():
+    sc = _locked_infeasible_scenario()
+    why = {int(sc.ids[k]): reason for k, reason in sc.infeasible.items()}
+    assert "collides with positioner 1's target" in why[0] and "collides with positioner 0's target" in why[1]
+    result = fp.plan(sc, "mpc")
+    summary = _check(sc, result)
+    outcome = dict(zip(sc.ids.tolist(), result.outcome.tolist(), strict=True))
+    assert outcome[0] == outcome[1] == "infeasible" and outcome[3] == "locked" and outcome[7] == "held"
+    assert summary["reached"] == summary["targets"] == int(sc.has_target.sum()) >= 13  # everyone else
+    assert summary["infeasible"] == len(sc.infeasible) >= 2 and summary["locked"] == 1
+    joints = result.trajectory.joints
+    assert np.all(joints[:, 3] == sc.start[3])  # the locked one never moves
+    for k in (0, 1, 7):  # held ones end where they started
+        np.testing.assert_allclose(joints[-1, k], sc.start[k], atol=1e-9)
+    assert summary["not_reached"][0].startswith("infeasible: target collides with positioner 1")
+
+
+@pytest.mark.parametrize("planner", ["dnf", "prioritized"])
+def test_locked_positioners_never_move_whatever_the_planner(planner):
+    sc = _locked_infeasible_scenario()
+    result = fp.plan(sc, planner)
+    assert np.all(result.trajectory.joints[:, 3] == sc.start[3])
+    assert fp.verify(sc, result.trajectory).n_collisions == 0
+
+
+def test_prioritized_is_a_registered_baseline():
+    sc = fp.make_scenario("desi", 19, "random", 2)
+    result = fp.plan(sc, "prioritized")
+    summary = _check(sc, result)
+    assert summary["reached"] == 19 and result.stats["restarts"] >= 0
+
+
+def test_command_line_unfold_reaches_all_and_names_the_route(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "fiberplan.cli", "plan", "--instrument", "moons", "-n", "61", "--scenario-kind",
+                           "unfold", "--seed", "1", "--planner", "mpc", "--json", "-q"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert summary["reached"] == 61 and summary["collisions"] == 0
