@@ -29,6 +29,9 @@ from fiberplan.trajectory import PlanResult
 _ARC_POINTS = 10
 _OK_COLOUR = "#4a7fb5"
 _HIT_COLOUR = "#d62728"
+_SHORT_COLOURS = {"deadlocked": "#ff7f0e", "unfinished": "#9467bd", "failed": "#8c564b", "infeasible": "#7f7f7f", "locked": "#17becf",
+                  "displaced": "#e377c2"}
+"""Outcomes marked on snapshots and animations (a square around the base, the id beside it)."""
 
 
 def _capsule_polygons(start: np.ndarray, end: np.ndarray, radius: np.ndarray) -> np.ndarray:
@@ -58,7 +61,7 @@ def colliding_rows(scenario: Scenario, joints: np.ndarray) -> np.ndarray:
 class _Frame:
     """Artists of one snapshot, updatable for animations."""
 
-    def __init__(self, ax: Axes, scenario: Scenario, show_targets: bool) -> None:
+    def __init__(self, ax: Axes, scenario: Scenario, show_targets: bool, outcome: np.ndarray | None = None) -> None:
         self.ax = ax
         self.scenario = scenario
         inst = scenario.instrument
@@ -76,6 +79,18 @@ class _Frame:
         self.arms = LineCollection([], colors="#222222", linewidths=0.6, zorder=3)
         ax.add_collection(self.arms)
         (self.alarm,) = ax.plot([], [], "o", mfc="none", mec=_HIT_COLOUR, ms=14, mew=1.2, zorder=5)
+        if outcome is not None:  # positioners not reached, marked with their outcome
+            for kind, colour in _SHORT_COLOURS.items():
+                rows = np.flatnonzero(np.asarray(outcome) == kind)
+                if len(rows):
+                    ax.plot(scenario.base_xy[rows, 0], scenario.base_xy[rows, 1], "s", mfc="none", mec=colour, ms=9, mew=1.0, zorder=5,
+                            label=f"{kind} ({len(rows)})")
+                    if len(rows) <= 40:
+                        for k in rows.tolist():
+                            ax.annotate(str(scenario.ids[k]), scenario.base_xy[k], fontsize=6, color=colour, xytext=(3, 3),
+                                        textcoords="offset points", zorder=6)
+            if any(np.isin(np.asarray(outcome), list(_SHORT_COLOURS))):
+                ax.legend(loc="upper right", fontsize=7, framealpha=0.8)
         lo = scenario.base_xy.min(axis=0) - inst.extent_mm
         hi = scenario.base_xy.max(axis=0) + inst.extent_mm
         ax.set_xlim(lo[0], hi[0])
@@ -110,8 +125,10 @@ def plot_snapshot(
     ax: Axes | None = None,
     title: str = "",
     show_targets: bool = True,
+    outcome: np.ndarray | None = None,
 ) -> Figure:
-    """Draw arms, capsules (red where colliding), patrol circles and targets.
+    """Draw arms, capsules (red where colliding), patrol circles and targets; with ``outcome``,
+    the positioners not reached are marked by their outcome (deadlocked, infeasible, locked...).
 
     Args:
         scenario: the positioners.
@@ -119,12 +136,13 @@ def plot_snapshot(
         ax: axes to draw on (a new figure by default).
         title: figure title.
         show_targets: mark the targets.
+        outcome: ``(N,)`` outcomes (``PlanResult.outcome``) to mark those not reached.
     """
     if ax is None:
         fig, ax = plt.subplots(figsize=(7, 7))
     else:
         fig = ax.figure  # type: ignore[assignment]
-    frame = _Frame(ax, scenario, show_targets)
+    frame = _Frame(ax, scenario, show_targets, outcome)
     frame.update(scenario.start if joints is None else joints, title)
     return fig  # type: ignore[return-value]
 
@@ -141,6 +159,7 @@ def save_snapshot(result: PlanResult, out: str | Path, t: float, dpi: int = 150)
         result.scenario,
         joints,
         title=f"{result.planner} | {result.scenario.instrument.name} | N={result.scenario.n_positioners} | t = {t:.3f} s",
+        outcome=result.outcome,
     )
     out = Path(out)
     with atomic_path(out) as tmp:
@@ -156,7 +175,7 @@ def save_animation(result: PlanResult, out: str | Path, *, fps: int = 20, max_fr
     n_frames = int(min(max_frames, max(2, len(traj.times))))
     frame_times = np.linspace(0.0, traj.duration_s, n_frames)
     fig, ax = plt.subplots(figsize=(6, 6))
-    frame = _Frame(ax, result.scenario, show_targets=True)
+    frame = _Frame(ax, result.scenario, show_targets=True, outcome=result.outcome)
     label = f"{result.planner} | {result.scenario.instrument.name} | N={result.scenario.n_positioners}"
 
     def draw(k: int) -> list:
