@@ -132,7 +132,7 @@ def plan(
             leg_settings = direct if time_limit_s is None else dataclasses.replace(direct, time_limit_s=time_limit_s)
             return func(leg, leg_settings, None)
 
-        result = coordination.coordinate(scenario, planner, settings, plan_leg, t0)
+        result = coordination.coordinate(scenario, planner, settings, plan_leg, t0, progress)
         if progress is not None:
             progress(1.0)
         return result

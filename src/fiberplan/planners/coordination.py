@@ -375,7 +375,9 @@ def _score(scenario: Scenario, traj: Trajectory) -> tuple[int, float]:
     return short, float(np.nanmax(arrive[reached])) if reached.any() else 0.0
 
 
-def coordinate(scenario: Scenario, planner: str, settings: Any, plan_leg: PlanLeg, wall0: float) -> PlanResult:
+def coordinate(
+    scenario: Scenario, planner: str, settings: Any, plan_leg: PlanLeg, wall0: float, progress: Callable[[float], None] | None = None,
+) -> PlanResult:
     """Plan ``scenario`` along ``settings.route`` (see the module docstring).
 
     Args:
@@ -384,6 +386,8 @@ def coordinate(scenario: Scenario, planner: str, settings: Any, plan_leg: PlanLe
         settings: its settings (``route``, ``route_attempts``, ``dt_s``).
         plan_leg: plans one leg with this planner and ``route = direct``.
         wall0: ``time.perf_counter()`` when planning began.
+        progress: called after every planner run with a fraction that grows toward 1 (the
+            number of runs is not known beforehand).
     """
     route, attempts, dt = settings.route, settings.route_attempts, settings.dt_s
     candidates: dict[str, list[_Piece]] = {}
@@ -394,6 +398,8 @@ def coordinate(scenario: Scenario, planner: str, settings: Any, plan_leg: PlanLe
     def recorded(leg: Scenario, **kwargs: Any) -> PlanResult:
         result = plan_one(leg, **kwargs)
         runs.append(result)
+        if progress is not None:
+            progress(1.0 - 0.5 ** len(runs))
         return result
 
     plan_leg = recorded
