@@ -313,22 +313,73 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, attempts: int, start: np.n
     home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)  # where each must end
     safe = _folded_midway(scenario, start) if midway else _datum(scenario)
     hold = _clear_holds(scenario, np.where(movers[:, None], safe, start), movers)
-    t0 = time.perf_counter()
     fold = leg_scenario(scenario, start, hold, "fold")
-    fold_joints, k1, complete = _complete(fold, plan_leg, attempts)
-    if not complete:
-        return None
-    t1 = time.perf_counter()
     back_start = np.where(movers[:, None], home, start)
     back = leg_scenario(scenario, back_start, hold, "unfold-reversed")
-    back_joints, k2, complete = _complete(back, plan_leg, attempts)
-    if not complete:
+    # The two legs are independent: the second is planned in a forked process meanwhile.
+    (fold_joints, k1, ok1, w1), (back_joints, k2, ok2, w2) = _both(
+        lambda: _timed(_complete, fold, plan_leg, attempts), lambda: _timed(_complete, back, plan_leg, attempts)
+    )
+    if not (ok1 and ok2):
         return None
     who = np.flatnonzero(movers).tolist()
     return [
-        _Piece(f"{label}fold to the datum", fold_joints, who, k1, t1 - t0),
-        _Piece(f"{label}unfold from the datum (planned from the targets)", _reversed(back_joints), who, k2, time.perf_counter() - t1),
+        _Piece(f"{label}fold to the datum", fold_joints, who, k1, w1),
+        _Piece(f"{label}unfold from the datum (planned from the targets)", _reversed(back_joints), who, k2, w2),
     ]
+
+
+def _timed(fn: Callable[..., tuple[np.ndarray, int, bool]], *args: Any) -> tuple[np.ndarray, int, bool, float]:
+    t0 = time.perf_counter()
+    joints, k, ok = fn(*args)
+    return joints, k, ok, time.perf_counter() - t0
+
+
+_CHILD_RUNS: list[dict[str, Any]] = []
+"""Statistics of the planner runs made in a forked process (:func:`_both`), for the totals."""
+
+
+def _both(first: Callable[[], Any], second: Callable[[], Any]) -> tuple[Any, Any]:
+    """``(first(), second())``, the second in a forked process while the first runs here (on a
+    machine with one core, or where fork is missing, one after the other). The results are the
+    same either way: each leg is planned deterministically from its own scenario."""
+    import multiprocessing as mp
+    import os
+
+    if (os.cpu_count() or 1) < 2 or "fork" not in mp.get_all_start_methods() or _IN_CHILD[0]:
+        return first(), second()
+    ctx = mp.get_context("fork")
+    parent, child = ctx.Pipe(duplex=False)
+
+    def run() -> None:
+        _IN_CHILD[0] = True
+        runs_before = len(_RUN_LOG)
+        try:
+            out = ("ok", second(), [r for r in _RUN_LOG[runs_before:]])
+        except BaseException as e:  # reported to the parent, which raises it
+            out = ("error", repr(e), [])
+        child.send(out)
+        child.close()
+
+    proc = ctx.Process(target=run, daemon=False)  # the leg may start the mpc's own worker processes
+    proc.start()
+    child.close()
+    try:
+        a = first()
+        status, b, child_runs = parent.recv()
+    finally:
+        proc.join(timeout=10)
+        if proc.is_alive():
+            proc.terminate()
+    if status != "ok":
+        raise RuntimeError(f"the leg planned in a forked process failed: {b}")
+    _CHILD_RUNS.extend(child_runs)
+    return a, b
+
+
+_IN_CHILD = [False]
+_RUN_LOG: list[dict[str, Any]] = []
+"""Statistics of every planner run of this process (the forked leg sends its own back)."""
 
 
 def _fix_up(scenario: Scenario, direct: _Piece, plan_leg: PlanLeg, attempts: int, rounds: int = 3) -> list[_Piece] | None:
@@ -393,11 +444,13 @@ def coordinate(
     candidates: dict[str, list[_Piece]] = {}
     tried: list[dict[str, Any]] = []
     runs: list[PlanResult] = []  # every planner run, for the statistics
+    _CHILD_RUNS.clear()
     plan_one = plan_leg
 
     def recorded(leg: Scenario, **kwargs: Any) -> PlanResult:
         result = plan_one(leg, **kwargs)
         runs.append(result)
+        _RUN_LOG.append(dict(result.stats))
         if progress is not None:
             progress(1.0 - 0.5 ** len(runs))
         return result
@@ -460,7 +513,7 @@ def coordinate(
     carried = sorted({int(scenario.ids[i]) for p in pieces if "datum" in p.name for i in p.moved})
     stats: dict[str, Any] = {
         "route": route, "structure": structure, "chosen": chosen, "candidates": tried, "legs": legs,
-        "via_datum_ids": carried, "n_via_datum": len(carried), "planner_runs": len(runs),
+        "via_datum_ids": carried, "n_via_datum": len(carried), "planner_runs": len(runs) + len(_CHILD_RUNS),
     }
     single = [r for r in runs if np.array_equal(r.trajectory.joints, trajectory.joints)]
     if single:
@@ -468,8 +521,8 @@ def coordinate(
         only = single[0]
         return dataclasses.replace(only, stats=only.stats | stats, settings=dataclasses.asdict(settings),
                                    plan_wall_s=time.perf_counter() - wall0)
-    for r in runs:  # the planners' counters, summed over every run of every leg tried
-        for key, value in r.stats.items():
+    for run_stats in [r.stats for r in runs] + _CHILD_RUNS:  # the planners' counters, summed over every run of every leg tried
+        for key, value in run_stats.items():
             if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_)):
                 stats[key] = stats.get(key, 0) + value
     warnings = []
