@@ -42,7 +42,7 @@ def test_via_datum_passes_through_the_datum_and_reaches_every_target():
     assert summary["reached"] == 19
     legs = result.stats["legs"]
     assert [leg["leg"] for leg in legs] == ["fold to the datum", "unfold from the datum (planned from the targets)"]
-    k = int(round(legs[0]["t1_s"] / result.settings["dt_s"]))
+    k = round(legs[0]["t1_s"] / result.settings["dt_s"])
     datum = np.array(sc.instrument.datum_rad)
     np.testing.assert_allclose(result.trajectory.joints[k], np.broadcast_to(datum, (19, 2)), atol=1e-12)
     assert result.stats["n_via_datum"] == 19
