@@ -37,7 +37,7 @@ def test_unfold_is_the_reverse_of_a_fold(planner):
 
 def test_via_datum_passes_through_the_datum_and_reaches_every_target():
     sc = fp.make_scenario("moons", 19, "random", 2)
-    result = fp.plan(sc, "mpc", {"route": "via_datum"})
+    result = fp.plan(sc, "mpc", {"route": "via_datum", "route_overlap": False})
     summary = _check(sc, result)
     assert summary["reached"] == 19
     legs = result.stats["legs"]
@@ -46,6 +46,52 @@ def test_via_datum_passes_through_the_datum_and_reaches_every_target():
     datum = np.array(sc.instrument.datum_rad)
     np.testing.assert_allclose(result.trajectory.joints[k], np.broadcast_to(datum, (19, 2)), atol=1e-12)
     assert result.stats["n_via_datum"] == 19
+
+
+def test_overlapped_legs_still_pass_every_positioner_through_the_datum_and_end_sooner():
+    sc = fp.make_scenario("moons", 19, "random", 2)
+    apart = fp.plan(sc, "mpc", {"route": "via_datum", "route_overlap": False})
+    together = fp.plan(sc, "mpc", {"route": "via_datum"})
+    summary = _check(sc, together)
+    assert summary["reached"] == 19
+    assert together.stats["overlap_s"] > 0
+    assert together.trajectory.duration_s == pytest.approx(apart.trajectory.duration_s - together.stats["overlap_s"])
+    datum = np.array(sc.instrument.datum_rad)
+    at_datum = np.all(np.abs(together.trajectory.joints - datum) < 1e-12, axis=2)  # (T, N)
+    assert at_datum.any(axis=0).all()  # every positioner still passes through the datum
+
+
+def test_overlap_keeps_new_pairs_apart_or_is_refused():
+    from fiberplan.planners.coordination.retime import _new_pairs_clear, _phases, overlap_legs
+
+    sc = fp.make_scenario("moons", 19, "random", 2)
+    result = fp.plan(sc, "mpc", {"route": "via_datum", "route_overlap": False})
+    k = round(result.stats["legs"][0]["t1_s"] / result.settings["dt_s"])
+    j1, j2 = result.trajectory.joints[: k + 1], result.trajectory.joints[k:]
+    joints, shift = overlap_legs(sc, j1, j2, floor=0.0, coarse=5)
+    assert 0 < shift < k and len(joints) == len(result.trajectory.joints) - shift
+    assert fp.verify(sc, fp.Trajectory(np.arange(len(joints)) * result.settings["dt_s"], joints)).ok
+    # No new pair can keep a floor of 100 mm: the overlap is then only as long as no new pair arises.
+    joints_far, shift_far = overlap_legs(sc, j1, j2, floor=100.0, coarse=5)
+    assert shift_far < shift
+    a, b = _phases(j1, j2)
+    assert _new_pairs_clear(sc, j1, j2, a, b, shift_far, floor=np.inf)  # true only where there is no new pair
+    assert not _new_pairs_clear(sc, j1, j2, a, b, shift, floor=np.inf)
+
+
+def test_restarts_shorten_a_leg_with_stragglers_and_never_lengthen_one():
+    sc = fp.make_scenario("moons", 61, "random", 0)
+    fold = leg_scenario(sc, sc.target, np.broadcast_to(np.array(sc.instrument.datum_rad), (61, 2)), "fold")
+    plain = fp.plan(fold, "mpc", {"route": "direct"})
+    once = fp.plan(fold, "mpc", {"route_restarts": False})  # a fold: the planner alone, through the layer
+    assert once.stats["structure"] == "fold"
+    np.testing.assert_array_equal(once.trajectory.joints, plain.trajectory.joints)
+    shortened = fp.plan(fold, "mpc")
+    assert shortened.stats["planner_runs"] > 1
+    assert shortened.trajectory.duration_s < 0.9 * plain.trajectory.duration_s  # 37.85 s -> 19-20 s when measured
+    summary = _check(fold, shortened)
+    assert summary["reached"] == 61
+    np.testing.assert_array_equal(shortened.trajectory.joints[:100], plain.trajectory.joints[:100])  # a restart keeps the start
 
 
 @pytest.mark.parametrize(("instrument", "n", "seed"), [("moons", 19, 0), ("sdss", 19, 1)])

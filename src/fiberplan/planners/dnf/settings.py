@@ -7,6 +7,7 @@ from typing import Literal
 
 from fiberplan.instrument import Instrument
 from fiberplan.planners import instrument_defaults
+from fiberplan.planners.coordination.settings import RouteSettings
 from fiberplan.settings import check_settings, setting
 
 AttractionKind = Literal["joint", "fiber"]
@@ -34,7 +35,7 @@ _MIN_SEP2_FRACTION = 1e-4
 
 
 @dataclass(frozen=True)
-class DnfSettings:
+class DnfSettings(RouteSettings):
     """Settings of the ``dnf`` planner (defaults per instrument: :meth:`for_instrument`).
 
     Every field is declared with :func:`fiberplan.settings.setting` (doc, unit, valid range,
@@ -91,11 +92,7 @@ class DnfSettings:
                                      group="deadlocks")
     retreat_s: float = setting(0.5, "duration of a retreat", unit="s", low=0.0, high=1e5, low_open=True, group="deadlocks")
     max_retreats: int = setting(3, "retreats per positioner and run", low=0, high=1000, group="deadlocks")
-    # --- the route (fiberplan.planners.coordination)
-    route: str = setting("auto", "how the move is planned: the planner alone (direct), reversed, through the datum, or chosen by "
-                         "the scenario's structure (auto)", choices=("direct", "reverse", "via_datum", "via_fold", "auto"), group="route")
-    route_attempts: int = setting(4, "attempts per leg: each from where the previous one stopped, until every positioner arrives",
-                                  low=1, high=50, group="route")
+    # --- the route (fiberplan.planners.coordination; the other route settings: RouteSettings)
     route_fallback_planner: str | None = setting("mpc", "the planner of a leg's last attempt when this one stalls (null: none, "
                                                  "for studies of this planner alone)", choices=("mpc", "dnf", None), optional=True,
                                                  group="route")

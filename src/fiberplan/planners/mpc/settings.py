@@ -15,13 +15,14 @@ from fiberplan.errors import PlannerError
 from fiberplan.geometry import motion_bound, point_extents
 from fiberplan.instrument import Instrument
 from fiberplan.planners import instrument_defaults
+from fiberplan.planners.coordination.settings import RouteSettings
 from fiberplan.settings import check_settings, setting
 
 QP_SOLVERS = ("osqp", "clarabel", "proxqp", "daqp", "highs", "scs", "quadprog", "cvxopt", "piqp")
 
 
 @dataclass(frozen=True)
-class MpcSettings:
+class MpcSettings(RouteSettings):
     """Settings of the ``mpc`` planner (defaults per instrument: :meth:`for_instrument`).
 
     Every field is declared with :func:`fiberplan.settings.setting`: its documentation, unit,
@@ -91,11 +92,7 @@ class MpcSettings:
                                        low=1, high=1000, group="schedule")
     schedule_repair: bool = setting(True, "a positioner no timed path fits goes first; a placed neighbour is placed again after it",
                                     group="schedule")
-    # --- the route (fiberplan.planners.coordination)
-    route: str = setting("auto", "how the move is planned: the planner alone (direct), reversed, through the datum, or chosen by "
-                         "the scenario's structure (auto)", choices=("direct", "reverse", "via_datum", "via_fold", "auto"), group="route")
-    route_attempts: int = setting(4, "attempts per leg: each from where the previous one stopped, until every positioner arrives",
-                                  low=1, high=50, group="route")
+    # --- the route (fiberplan.planners.coordination; the other route settings: RouteSettings)
     route_fallback_planner: str | None = setting("dnf", "the planner of a leg's last attempt when this one stalls (null: none, "
                                                  "for studies of this planner alone)", choices=("mpc", "dnf", None), optional=True,
                                                  group="route")

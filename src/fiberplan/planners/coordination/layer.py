@@ -1,0 +1,328 @@
+"""Strategies of the coordination layer and :func:`coordinate` (see the package docstring)."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from fiberplan.geometry import min_pair_clearance
+from fiberplan.metrics import arrival_times, reached_mask
+from fiberplan.outcomes import outcome_labels
+from fiberplan.planners.coordination.fork import CHILD_RUNS, RUN_LOG, both
+from fiberplan.planners.coordination.legs import PlanLeg, _park_candidates, complete_leg, leg_scenario
+from fiberplan.planners.coordination.retime import overlap_legs
+from fiberplan.scenario import Scenario
+from fiberplan.trajectory import PlanResult, Trajectory
+
+ROUTES = ("direct", "reverse", "via_datum", "via_fold", "auto")
+"""Values of the ``route`` setting."""
+
+DENSE_REACH = 0.8
+"""Patrol regions overlap densely when the reach exceeds this fraction of the pitch (MOONS,
+SDSS: 1.0; DESI: 0.58): there the two-leg plan comes first and bounds the direct attempt."""
+
+
+@dataclasses.dataclass(frozen=True)
+class _Options:
+    """What the strategies take from the run's settings."""
+
+    attempts: int  # route_attempts
+    restarts: float | None  # the sample period if route_restarts, else None
+    overlap: bool  # route_overlap
+    floor_mm: float  # the clearance new pairs of overlapped legs keep (the planner's safety margin)
+    coarse_steps: int  # stride of the search for the overlap
+
+
+@dataclasses.dataclass
+class _Piece:
+    """Part of the combined trajectory: samples ``(K, N, 2)`` after the previous piece's end."""
+
+    name: str
+    joints: np.ndarray
+    moved: list[int]
+    attempts: int
+    wall_s: float
+    overlap_steps: int = 0
+
+
+def _join(scenario: Scenario, pieces: list[_Piece], dt: float) -> Trajectory:
+    """One trajectory from pieces that each start where the previous one ended (first piece
+    from the scenario's start)."""
+    joints = np.concatenate([scenario.start[None], *[p.joints[1:] for p in pieces]])
+    return Trajectory(np.arange(len(joints)) * dt, joints)
+
+
+def _reversed(joints: np.ndarray) -> np.ndarray:
+    return joints[::-1].copy()
+
+
+# ---------------------------------------------------------------------------- strategies
+def _direct(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piece]:
+    t0 = time.perf_counter()
+    joints, k, _ = complete_leg(scenario, plan_leg, opts.attempts, strict=False, restarts=opts.restarts)
+    return [_Piece("direct", joints, np.flatnonzero(scenario.has_target).tolist(), k, time.perf_counter() - t0)]
+
+
+def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piece] | None:
+    """The move planned from the targets back to the starts, played forwards; ``None`` unless
+    the reversed plan brings every positioner exactly back to its start."""
+    t0 = time.perf_counter()
+    back = leg_scenario(scenario, scenario.target, scenario.start, "reverse")
+    joints, k, complete = complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts)
+    if not complete:
+        return None
+    return [_Piece("reverse (planned from the targets)", _reversed(joints), np.flatnonzero(scenario.has_target).tolist(), k,
+                   time.perf_counter() - t0)]
+
+
+def _datum(scenario: Scenario) -> np.ndarray:
+    datum = np.broadcast_to(np.array(scenario.instrument.datum_rad), (scenario.n_positioners, 2)).copy()
+    datum[scenario.locked] = scenario.start[scenario.locked]
+    return datum
+
+
+def _folded_midway(scenario: Scenario, start: np.ndarray) -> np.ndarray:
+    """Folded (the datum's beta) at the alpha half-way between the start and the target: safe for
+    everyone (folded positioners of every preset keep clear of each other at any alphas), and each
+    leg turns alpha half the way."""
+    home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)
+    out = _datum(scenario)
+    free = ~scenario.locked
+    out[free, 0] = 0.5 * (start[free, 0] + home[free, 0])
+    return out
+
+
+def _clear_holds(scenario: Scenario, hold: np.ndarray, movers: np.ndarray) -> np.ndarray:
+    """The intermediate configuration with every mover whose datum collides with a positioner
+    holding still (locked, say) folded at another alpha instead, where it is clear."""
+    pairs = scenario.pairs
+    if not len(pairs):
+        return hold
+    lim = scenario.instrument.limits_rad
+    for _ in range(3):
+        clearance = min_pair_clearance(scenario.instrument, scenario.base_xy, scenario.orient, hold, pairs)
+        bad = np.flatnonzero(clearance < 0.0)
+        if not len(bad):
+            break
+        for r in bad.tolist():
+            for k in pairs[r].tolist():
+                if not movers[k]:
+                    continue
+                rows = np.flatnonzero((pairs == k).any(axis=1))
+                for cand in _park_candidates(hold[k], lim):
+                    trial = hold.copy()
+                    trial[k] = cand
+                    if np.all(min_pair_clearance(scenario.instrument, scenario.base_xy, scenario.orient, trial, pairs[rows]) > 0.0):
+                        hold[k] = cand
+                        break
+                break
+    return hold
+
+
+def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.ndarray | None = None,
+               movers: np.ndarray | None = None, label: str = "", midway: bool = False) -> list[_Piece] | None:
+    """Two legs through the datum (``midway``: through the folded configuration half-way in
+    alpha, :func:`_folded_midway`) for ``movers`` (default: every positioner that is not locked),
+    the others holding where ``start`` has them: ``start -> safe``, then ``(target -> safe)``
+    reversed, overlapped where that is clear (:func:`overlap_legs`). ``None`` unless both legs
+    are complete."""
+    start = scenario.start if start is None else start
+    movers = ~scenario.locked if movers is None else movers
+    home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)  # where each must end
+    safe = _folded_midway(scenario, start) if midway else _datum(scenario)
+    hold = _clear_holds(scenario, np.where(movers[:, None], safe, start), movers)
+    fold = leg_scenario(scenario, start, hold, "fold")
+    back_start = np.where(movers[:, None], home, start)
+    back = leg_scenario(scenario, back_start, hold, "unfold-reversed")
+    # The two legs are independent: the second is planned in a forked process meanwhile.
+    (fold_joints, k1, ok1, w1), (back_joints, k2, ok2, w2) = both(
+        lambda: _timed(complete_leg, fold, plan_leg, opts.attempts, None, True, True, opts.restarts),
+        lambda: _timed(complete_leg, back, plan_leg, opts.attempts, None, True, True, opts.restarts),
+    )
+    if not (ok1 and ok2):
+        return None
+    who = np.flatnonzero(movers).tolist()
+    unfold = _reversed(back_joints)
+    if opts.overlap:
+        joints, shift = overlap_legs(scenario, fold_joints, unfold, opts.floor_mm, opts.coarse_steps)
+        if shift:
+            return [_Piece(f"{label}fold to the datum, then unfold from it (planned from the targets), overlapped by {shift} steps",
+                           joints, who, k1 + k2, w1 + w2, overlap_steps=shift)]
+    return [
+        _Piece(f"{label}fold to the datum", fold_joints, who, k1, w1),
+        _Piece(f"{label}unfold from the datum (planned from the targets)", unfold, who, k2, w2),
+    ]
+
+
+def _timed(fn: Callable[..., tuple[np.ndarray, int, bool]], *args: Any) -> tuple[np.ndarray, int, bool, float]:
+    t0 = time.perf_counter()
+    joints, k, ok = fn(*args)
+    return joints, k, ok, time.perf_counter() - t0
+
+
+def _fix_up(scenario: Scenario, direct: _Piece, plan_leg: PlanLeg, opts: _Options, rounds: int = 3) -> list[_Piece] | None:
+    """The direct plan until its last arrival, then the positioners still short (and, round by
+    round, the neighbours that block them) through the datum, everyone else holding."""
+    traj = Trajectory(np.arange(len(direct.joints)), direct.joints)
+    reached = reached_mask(scenario, traj)
+    arrive = arrival_times(scenario, traj)
+    cut = int(np.nanmax(arrive[reached])) if reached.any() else 0
+    state = direct.joints[cut]
+    # The positioners still short, and the held ones away from home, go through the datum.
+    home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)
+    movers = ~np.all(state == home, axis=1) & ~scenario.locked
+    if not movers.any():
+        return None
+    pairs = scenario.pairs
+    head = _Piece("direct (until its last arrival)", direct.joints[: cut + 1], direct.moved, direct.attempts, direct.wall_s)
+    for _ in range(rounds):
+        legs = _via_datum(scenario, plan_leg, opts, start=state, movers=movers, label="fix-up: ")
+        if legs is not None:
+            return [head, *legs]
+        # The neighbours of the movers fold too, next round.
+        near = np.unique(pairs[movers[pairs[:, 0]] | movers[pairs[:, 1]]].ravel()) if len(pairs) else np.zeros(0, dtype=int)
+        grown = movers.copy()
+        grown[near] = True
+        grown &= ~scenario.locked
+        if np.array_equal(grown, movers):
+            break
+        movers = grown
+    return None
+
+
+# ---------------------------------------------------------------------------- the layer
+def _is_at_datum(scenario: Scenario, joints: np.ndarray) -> bool:
+    free = ~scenario.locked
+    return bool(np.all(joints[free] == _datum(scenario)[free]))
+
+
+def _score(scenario: Scenario, traj: Trajectory) -> tuple[int, float]:
+    """(positioners short, makespan): smaller is better."""
+    reached = reached_mask(scenario, traj)
+    arrive = arrival_times(scenario, traj)
+    short = int(np.sum(scenario.has_target & ~reached))
+    return short, float(np.nanmax(arrive[reached])) if reached.any() else 0.0
+
+
+def _options(settings: Any) -> _Options:
+    step = max(1, round(0.25 / settings.dt_s))  # the overlap is searched in strides of 0.25 s, then refined
+    return _Options(settings.route_attempts, settings.dt_s if settings.route_restarts else None, settings.route_overlap,
+                    float(getattr(settings, "safety_margin_mm", 0.0)), step)
+
+
+def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Options,
+                consider: Callable[[str, list[_Piece] | None], dict[str, Any]]) -> str:
+    """Plan along ``route`` (every candidate goes to ``consider``); returns the structure found."""
+    if route == "direct":
+        consider("direct", _direct(scenario, plan_leg, opts))
+    elif route == "reverse":
+        consider("reverse", _reverse(scenario, plan_leg, opts))
+    elif route == "via_datum":
+        consider("via_datum", _via_datum(scenario, plan_leg, opts))
+    elif route == "via_fold":
+        consider("via_fold", _via_datum(scenario, plan_leg, opts, midway=True))
+    elif _is_at_datum(scenario, scenario.start):  # an unfold: the reverse of a fold
+        consider("reverse", _reverse(scenario, plan_leg, opts))
+        return "unfold"
+    elif _is_at_datum(scenario, scenario.target):
+        consider("direct", _direct(scenario, plan_leg, opts))
+        return "fold"
+    elif scenario.instrument.reach_max_mm > DENSE_REACH * scenario.instrument.pitch_mm:
+        # Dense: the direct plan leaves positioners short on every seed measured, and a fix-up
+        # after it was slower than the two-leg plan on every one: the two legs alone.
+        consider("via_datum", _via_datum(scenario, plan_leg, opts))
+        return "dense"
+    else:
+        direct = _direct(scenario, plan_leg, opts)
+        if consider("direct", direct).get("short", 1) > 0:
+            consider("via_datum", _via_datum(scenario, plan_leg, opts))
+            consider("fix_up", _fix_up(scenario, direct[0], plan_leg, opts))
+    return "general"
+
+
+def coordinate(
+    scenario: Scenario, planner: str, settings: Any, plan_leg: PlanLeg, wall0: float, progress: Callable[[float], None] | None = None,
+) -> PlanResult:
+    """Plan ``scenario`` along ``settings.route`` (see the package docstring).
+
+    Args:
+        scenario: what to plan.
+        planner: the planner's registry name.
+        settings: its settings (:class:`RouteSettings` fields, ``dt_s``, ``safety_margin_mm`` if any).
+        plan_leg: plans one leg with this planner and ``route = direct``.
+        wall0: ``time.perf_counter()`` when planning began.
+        progress: called after every planner run with a fraction that grows toward 1 (the
+            number of runs is not known beforehand).
+    """
+    route, dt = settings.route, settings.dt_s
+    candidates: dict[str, list[_Piece]] = {}
+    tried: list[dict[str, Any]] = []
+    runs: list[PlanResult] = []  # every planner run, for the statistics
+    CHILD_RUNS.clear()
+
+    def recorded(leg: Scenario, **kwargs: Any) -> PlanResult:
+        result = plan_leg(leg, **kwargs)
+        runs.append(result)
+        RUN_LOG.append(dict(result.stats))
+        if progress is not None:
+            progress(1.0 - 0.5 ** len(runs))
+        return result
+
+    def consider(name: str, pieces: list[_Piece] | None) -> dict[str, Any]:
+        entry: dict[str, Any] = {"strategy": name, "complete": pieces is not None}
+        if pieces is not None:
+            short, makespan = _score(scenario, _join(scenario, pieces, dt))
+            entry |= {"short": short, "makespan_s": makespan}
+            candidates[name] = pieces
+        tried.append(entry)
+        return entry
+
+    opts = _options(settings)
+    structure = _strategies(scenario, route, recorded, opts, consider)
+    if not candidates:  # nothing complete: the direct plan, with what it reached
+        consider("direct (fallback)", _direct(scenario, recorded, opts))
+    chosen = min(candidates, key=lambda name: (_score(scenario, _join(scenario, candidates[name], dt)), name != "via_datum"))
+    if "via_datum" in candidates and chosen != "via_datum":
+        # Never worse than the two-leg plan.
+        if _score(scenario, _join(scenario, candidates[chosen], dt)) > _score(scenario, _join(scenario, candidates["via_datum"], dt)):
+            chosen = "via_datum"
+    pieces = candidates[chosen]
+    trajectory = _join(scenario, pieces, dt)
+    stats: dict[str, Any] = {"route": route, "structure": structure, "chosen": chosen, "candidates": tried,
+                             "planner_runs": len(runs) + len(CHILD_RUNS)} | _leg_stats(scenario, pieces, dt)
+    single = [r for r in runs if np.array_equal(r.trajectory.joints, trajectory.joints)]
+    if single:
+        # The planner alone, in one run: its own result, with the route named.
+        only = single[0]
+        return dataclasses.replace(only, stats=only.stats | stats, settings=dataclasses.asdict(settings),
+                                   plan_wall_s=time.perf_counter() - wall0)
+    for run_stats in [r.stats for r in runs] + CHILD_RUNS:  # the planners' counters, summed over every run of every leg tried
+        for key, value in run_stats.items():
+            if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_)):
+                stats[key] = stats.get(key, 0) + value
+    final = trajectory.joints[-1]
+    short = scenario.has_target & ~np.all(final == scenario.target, axis=1) & ~reached_mask(scenario, trajectory)
+    warnings = []
+    if short.any():
+        warnings.append(f"{planner} ({route}): {int(short.sum())} of {int(scenario.has_target.sum())} positioners did not reach their "
+                        f"targets along any route tried ({', '.join(e['strategy'] for e in tried)})")
+    return PlanResult(scenario=scenario, trajectory=trajectory, outcome=outcome_labels(scenario, final, short), planner=planner,
+                      settings=dataclasses.asdict(settings), stats=stats, warnings=tuple(warnings),
+                      plan_wall_s=time.perf_counter() - wall0)
+
+
+def _leg_stats(scenario: Scenario, pieces: list[_Piece], dt: float) -> dict[str, Any]:
+    """The legs (times, planner runs, positioners moved, plan time, overlap) and the ids carried through the datum."""
+    legs, t = [], 0.0
+    for p in pieces:
+        duration = (len(p.joints) - 1) * dt
+        legs.append({"leg": p.name, "t0_s": t, "t1_s": t + duration, "attempts": p.attempts, "moved": len(p.moved),
+                     "plan_wall_s": p.wall_s, "overlap_s": p.overlap_steps * dt})
+        t += duration
+    carried = sorted({int(scenario.ids[i]) for p in pieces if "datum" in p.name for i in p.moved})
+    return {"legs": legs, "via_datum_ids": carried, "n_via_datum": len(carried),
+            "overlap_s": sum(p.overlap_steps for p in pieces) * dt}

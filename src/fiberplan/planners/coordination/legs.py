@@ -1,0 +1,255 @@
+"""Legs: one planner's move from a start to a goal configuration, completed by further attempts
+and shortened by restarts (``formulations/coordination.md``, Completing a leg).
+
+A leg is a scenario in which every positioner that is not locked has a joint target. It is
+planned by ``plan_leg`` (the run's planner with ``route = direct``), then again from where each
+attempt stopped until every positioner sits exactly on its target (:func:`complete_leg`). A
+complete leg whose last arrivals straggle is planned again from where most positioners had
+arrived, and the shortest is kept (:func:`shorten_leg`): a new run of the planner starts a new
+schedule and resets the state of its deadlocks, which the stragglers of the first run were left
+to resolve one by one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import numpy as np
+
+from fiberplan.geometry import motion_bound, path_clearance, point_extents
+from fiberplan.scenario import TARGET_JOINTS, TARGET_NONE, Scenario, _replace
+from fiberplan.trajectory import PlanResult
+
+PlanLeg = Callable[..., PlanResult]
+"""Plans one leg with the run's planner and settings (``route = direct``); ``time_limit_s``
+(optional) stops it early; ``use_fallback`` plans it with the fallback planner instead."""
+
+RESTART_FRACTIONS = (0.7, 0.8, 0.9, 0.95)
+"""A complete leg is planned again from the first sample at which these fractions of its
+movers sat on their targets (:func:`shorten_leg`)."""
+
+RESTART_ABOVE = 1.2
+"""Only a leg longer than this many times its lower bound (the slowest straight joint move at
+full speed) is restarted: below, a restart costs planning time for little (DESI runs end at
+1.0-1.2 times the bound)."""
+
+
+def leg_scenario(scenario: Scenario, start: np.ndarray, goal: np.ndarray, name: str) -> Scenario:
+    """The same positioners from ``start`` to ``goal`` (rad), every one with a joint target
+    (locked ones stay locked, without a target)."""
+    n = scenario.n_positioners
+    kind = np.where(scenario.locked, TARGET_NONE, TARGET_JOINTS)
+    return _replace(
+        scenario, start_deg=np.degrees(start), target_kind=kind, target_values=np.where(scenario.locked[:, None], 0.0, np.degrees(goal)),
+        target_parity=np.zeros(n, dtype=np.int64), name=f"{scenario.name}:{name}", kind=name,
+    )
+
+
+def at_targets(scenario: Scenario, joints: np.ndarray) -> np.ndarray:
+    """Which positioners sit exactly on their (leg) targets."""
+    return np.all(joints == scenario.target, axis=1)
+
+
+
+def complete_leg(
+    leg: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None = None, unblock: bool = True, strict: bool = True,
+    restarts: float | None = None,
+) -> tuple[np.ndarray, int, bool]:
+    """Plan ``leg``, then again from where each attempt stopped, until every positioner sits on
+    its target, an attempt brings none closer, or ``time_limit_s`` of motion is used up. When an
+    attempt stalls on folded neighbours in the way (a fold whose datum blocks the last ones),
+    those neighbours are parked at another alpha, folded (:func:`_parking`), while the blocked
+    ones arrive, and come back in the next attempt. A complete leg is then shortened by restarts
+    when ``restarts`` is given: the planner's sample period (s) (:func:`shorten_leg`). Returns
+    ``(joints (K, N, 2), planner runs, complete)``."""
+    joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict)
+    if complete and restarts:
+        joints, more = shorten_leg(leg, joints, plan_leg, restarts)
+        runs += more
+    return joints, runs, complete
+
+
+def shorten_leg(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: float, rounds: int = 2) -> tuple[np.ndarray, int]:
+    """A complete leg planned again from where most of its movers had arrived; the shortest kept.
+
+    A leg within :data:`RESTART_ABOVE` times its lower bound is kept as it is. Otherwise, for
+    each fraction ``f`` of :data:`RESTART_FRACTIONS`, the leg is cut at the first sample at
+    which all but ``1 - f`` of its movers sat on their targets, and completed from there by new
+    planner runs (:func:`complete_leg`, without parking). A restart is kept only if the whole
+    leg ends earlier; with ``rounds`` > 1 the best leg is cut again. Every candidate starts from a
+    sample of a collision-free leg, so the kept leg is as safe as the planner's own runs.
+    ``dt_s`` is the sample period. Returns ``(joints, planner runs made)``.
+    """
+    runs = 0
+    best = joints
+    bound_s = float(np.max(np.abs(leg.target - leg.start) / leg.instrument.speeds_rad_s, initial=0.0))
+    if (len(joints) - 1) * dt_s <= RESTART_ABOVE * bound_s:
+        return joints, 0
+    tried_up_to = 0  # cuts before the last kept one were tried in an earlier round, from the same samples
+    for _ in range(rounds):
+        base = best
+        away = ~np.all(base == leg.target[None], axis=2)  # (K, N)
+        movers = int(away[0].sum())
+        if movers == 0:
+            break
+        left = away.sum(axis=1)
+        cuts = sorted({int(np.argmax(left <= (1.0 - f) * movers)) for f in RESTART_FRACTIONS})
+        kept = 0
+        for k in cuts:
+            if k <= tried_up_to or k >= len(base) - 2:
+                continue
+            restart = dataclasses.replace(leg, start_deg=np.degrees(base[k]), name=f"{leg.name}:restart")
+            # A restart that cannot end before the best leg so far is of no use: it stops there.
+            tail, n_runs, ok = _attempts(restart, plan_leg, 2, (len(best) - 1 - k) * dt_s, unblock=False, strict=False)
+            runs += n_runs
+            if ok and k + len(tail) < len(best):
+                best, kept = np.concatenate([base[: k + 1], tail[1:]]), k
+        if best is base:
+            break
+        tried_up_to = kept
+    return best, runs
+
+
+def _attempts(
+    leg: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None, unblock: bool, strict: bool,
+) -> tuple[np.ndarray, int, bool]:
+    """The attempts of :func:`complete_leg`."""
+    if strict and leg.infeasible:  # a leg target that cannot be reached would break the joint between legs
+        return leg.start[None].copy(), 0, False
+    pieces: list[np.ndarray] = []
+    current = leg
+    done_before = -1
+    used = 0.0
+    k = 0
+    fallback_used = False
+
+    def current_from(q: np.ndarray) -> Scenario:
+        return dataclasses.replace(leg, start_deg=np.degrees(q), name=f"{leg.name}:fallback")
+
+    while k < attempts:
+        k += 1
+        if time_limit_s is None:
+            result = plan_leg(current)
+        else:
+            if time_limit_s - used <= 0:
+                break
+            result = plan_leg(current, time_limit_s=time_limit_s - used)
+        joints = trim(result.trajectory.joints)
+        used += result.trajectory.duration_s
+        pieces.append(joints if not pieces else joints[1:])
+        end = joints[-1]
+        at = at_targets(leg, end)
+        if at.all():
+            return np.concatenate(pieces), k, True
+        if k < attempts and int(at.sum()) > done_before:  # another attempt follows: it starts at the last arrival
+            cut = _until_last_arrival(leg, joints)
+            pieces[-1] = cut if len(pieces) == 1 else cut[1:]
+            end = cut[-1]
+            at = at_targets(leg, end)
+        if int(at.sum()) <= done_before:
+            # An attempt that brought no one home is dropped: it only cost time.
+            pieces.pop()
+            end = current.start
+            parked = _parking(leg, end) if unblock else None
+            if parked is None:
+                if fallback_used or not unblock:
+                    break
+                # The last resort: one attempt of the fallback planner from where this one stalled.
+                fallback_used = True
+                result = plan_leg(current_from(end), use_fallback=True)
+                joints = trim(result.trajectory.joints)
+                pieces.append(joints[1:])
+                end = joints[-1]
+                if at_targets(leg, end).all():
+                    return np.concatenate(pieces), k + 1, True
+                break
+            detour = dataclasses.replace(leg, start_deg=np.degrees(end), target_values=np.degrees(parked), name=f"{leg.name}:parked")
+            d_joints, _, _ = _attempts(detour, plan_leg, 2, None, unblock=False, strict=False)
+            d_joints = trim(d_joints)
+            pieces.append(d_joints[1:])
+            end = d_joints[-1]
+            attempts = max(attempts, k + 2)  # the parked ones come back
+            unblock = False  # once per leg
+        done_before = int(at_targets(leg, end).sum())
+        current = dataclasses.replace(leg, start_deg=np.degrees(end), name=f"{leg.name}:attempt{k + 1}")
+    return np.concatenate(pieces), k, False
+
+
+PARK_OFFSETS_DEG = (30.0, -30.0, 60.0, -60.0, 90.0, -90.0, 120.0, -120.0, 150.0, -150.0, 180.0, -180.0)
+"""Alpha offsets tried, nearest first, to park a folded positioner out of a neighbour's way."""
+
+
+def _park_candidates(q: np.ndarray, lim: np.ndarray) -> list[np.ndarray]:
+    """Folded configurations at alphas offset from ``q``'s, nearest first, inside the hard stops."""
+    out = []
+    for off in np.radians(PARK_OFFSETS_DEG):
+        alpha = q[0] + off
+        if lim[0, 0] <= alpha <= lim[0, 1]:
+            out.append(np.array([alpha, q[1]]))
+    return out
+
+
+def _parking(leg: Scenario, end: np.ndarray) -> np.ndarray | None:
+    """Leg targets that let a stalled fold finish: a stuck positioner whose target is folded
+    folds at another alpha where its straight way is clear; else the folded neighbours that block
+    it are parked at another alpha, folded, where the stuck ones' straight paths clear them;
+    ``None`` if neither helps. (Folded positioners keep clear of each other at any alphas, so a
+    parked one can turn back to its target alpha once its neighbours are folded.)"""
+    inst = leg.instrument
+    step = inst.speeds_rad_s * inst.control_dt_s
+    lim = inst.limits_rad
+    pairs = leg.pairs
+    # The planners keep margins of about a step's motion: a way counts as clear with twice that.
+    room = 2.4 * float(motion_bound(point_extents(inst), step))
+    stuck = ~at_targets(leg, end) & leg.has_target
+    fold_beta = inst.datum_rad[1]
+    resting = at_targets(leg, end) & (np.abs(end[:, 1] - fold_beta) < 1e-9) & ~leg.locked
+    goal = leg.target.copy()
+    parked_any = False
+    folded_goal = np.abs(leg.target[:, 1] - fold_beta) < 1e-9
+    for s in np.flatnonzero(stuck).tolist():
+        rows = np.flatnonzero((pairs == s).any(axis=1)) if len(pairs) else np.zeros(0, dtype=int)
+        nb = np.where(pairs[rows, 0] == s, pairs[rows, 1], pairs[rows, 0])
+        if folded_goal[s]:
+            # The stuck one itself folds at another alpha, nearest its target's, where its straight way is clear.
+            for cand in _park_candidates(leg.target[s], lim):
+                c = path_clearance(leg, np.full(len(nb), s), nb, np.repeat(end[[s]], len(nb), 0), np.repeat(cand[None], len(nb), 0),
+                                   end[nb], step)
+                if np.all(c > room):
+                    goal[s] = cand
+                    parked_any = True
+                    break
+            if parked_any and not np.array_equal(goal[s], leg.target[s]):
+                continue
+        c = path_clearance(leg, np.full(len(nb), s), nb, np.repeat(end[[s]], len(nb), 0), np.repeat(leg.target[[s]], len(nb), 0), end[nb], step)
+        for j in nb[(c < 0.0) & resting[nb]].tolist():
+            for cand in _park_candidates(end[j], lim):
+                users = np.flatnonzero(stuck)
+                users = users[np.isin(users, np.unique(pairs[(pairs == j).any(axis=1)].ravel()))]
+                clear = path_clearance(leg, users, np.full(len(users), j), end[users], leg.target[users], np.repeat(cand[None], len(users), 0), step)
+                if np.all(clear > room):
+                    goal[j] = cand
+                    resting[j] = False
+                    parked_any = True
+                    break
+    return goal if parked_any else None
+
+
+def _until_last_arrival(leg: Scenario, joints: np.ndarray) -> np.ndarray:
+    """An incomplete attempt cut where its last positioner arrived for good: after that, no one
+    arrives, and the ones still short are better off starting the next attempt from there."""
+    at = np.all(joints == leg.target[None], axis=2)  # (K, N)
+    done = at[-1]
+    if not done.any():
+        return joints
+    away = ~at[:, done]
+    last_away = np.where(away.any(axis=0), len(joints) - 1 - np.argmax(away[::-1], axis=0), -1)
+    return joints[: int(last_away.max()) + 2]
+
+
+def trim(joints: np.ndarray) -> np.ndarray:
+    """An attempt without its idle end (after the last sample at which anything moved, everyone holds)."""
+    moved = np.flatnonzero(np.any(joints[1:] != joints[:-1], axis=(1, 2)))
+    return joints[: (moved[-1] + 2) if len(moved) else 1]
+

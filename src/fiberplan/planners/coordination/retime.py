@@ -1,0 +1,108 @@
+"""Overlapping two legs that meet at a common configuration (``formulations/coordination.md``,
+Overlapping the legs).
+
+A two-leg plan ``J1`` (start -> hold) then ``J2`` (hold -> goal) keeps every positioner at its
+hold configuration ``H`` from its arrival in the first leg (sample ``a_i``) until its departure
+in the second (sample ``b_i`` of ``J2``). Starting the second leg ``s`` samples early, for
+everyone at once, gives positioner ``i``
+
+    q_i(k) = J2[k - (K1 - s), i]   once k - (K1 - s) >= b_i,   else J1[min(k, K1), i],
+
+which is continuous (both sides equal ``H_i`` at the switch) as long as
+``s <= K1 - a_i + b_i`` for every ``i``. Each positioner runs its own samples of the two legs,
+so speeds and hard stops are those of the legs. A pair with both positioners in the same leg
+is in a configuration of that leg at one instant of it (a positioner waiting at ``H`` is in both
+legs), so it is as clear as the leg made it. Only a pair with one positioner still on its way to
+``H`` in the first leg and the other already on its way from ``H`` in the second is in a new
+configuration; those pairs are checked at every sample and between samples with the motion
+bound (clearance ``>= (c_k + c_{k+1} - M_i - M_j) / 2`` over a step), and the largest ``s`` for
+which every new pair keeps the floor is taken.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fiberplan.geometry import min_pair_clearance, motion_bound, point_extents
+from fiberplan.scenario import Scenario
+
+
+def _phases(j1: np.ndarray, j2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``a`` (first sample of ``j1`` from which each positioner stays at the hold) and ``b``
+    (last sample of ``j2`` up to which it is still there)."""
+    hold = j1[-1]
+    off1 = np.any(j1 != hold[None], axis=2)
+    k1 = len(j1) - 1
+    a = np.where(off1.any(axis=0), k1 + 1 - np.argmax(off1[::-1], axis=0), 0)
+    off2 = np.any(j2 != hold[None], axis=2)
+    b = np.where(off2.any(axis=0), np.argmax(off2, axis=0) - 1, len(j2) - 1)
+    return a, b
+
+
+def _combined(j1: np.ndarray, j2: np.ndarray, b: np.ndarray, s: int) -> tuple[np.ndarray, np.ndarray]:
+    """The joints of the legs overlapped by ``s`` samples, and which positioner runs the second
+    leg at each sample."""
+    k1, k2 = len(j1) - 1, len(j2) - 1
+    k = np.arange(k1 + k2 - s + 1)
+    m = k - (k1 - s)
+    second = (m[:, None] >= b[None, :]) & (m[:, None] >= 0)
+    joints = np.where(second[..., None], j2[np.clip(m, 0, k2)], j1[np.minimum(k, k1)])
+    return joints, second
+
+
+def _new_pairs_clear(scenario: Scenario, j1: np.ndarray, j2: np.ndarray, a: np.ndarray, b: np.ndarray, s: int,
+                     floor: float) -> bool:
+    """Whether every pair in a new configuration keeps ``floor`` at the samples and stays clear between them."""
+    pairs = scenario.pairs
+    if not len(pairs) or s <= 0:
+        return True
+    k1 = len(j1) - 1
+    joints, second = _combined(j1, j2, b, s)
+    lo, hi = max(0, k1 - s - 1), min(len(joints) - 1, k1 + 1)
+    window = joints[lo : hi + 1]
+    first = np.arange(lo, hi + 1)[:, None] < a[None, :]  # still on its way to the hold
+    then = second[lo : hi + 1]
+    i, j = pairs[:, 0], pairs[:, 1]
+    new = (first[:, i] & then[:, j]) | (first[:, j] & then[:, i])  # (W, P)
+    step_new = new[:-1] | new[1:]
+    rows = np.flatnonzero(step_new.any(axis=0))
+    if not len(rows):
+        return True
+    c = min_pair_clearance(scenario.instrument, scenario.base_xy, scenario.orient, window, pairs[rows])  # (W, R)
+    bound = motion_bound(point_extents(scenario.instrument), np.abs(np.diff(window, axis=0)))  # (W - 1, N)
+    lower = 0.5 * (c[:-1] + c[1:] - bound[:, i[rows]] - bound[:, j[rows]])
+    checked = step_new[:, rows]
+    return bool(np.all(lower[checked] > 0.0) and np.all(np.minimum(c[:-1], c[1:])[checked] >= floor))
+
+
+def overlap_legs(scenario: Scenario, j1: np.ndarray, j2: np.ndarray, floor: float, coarse: int) -> tuple[np.ndarray, int]:
+    """The two legs overlapped by the largest shift found safe (see the module docstring).
+
+    Args:
+        scenario: the positioners (bases, instrument, neighbour pairs).
+        j1, j2: the legs, ``(K1 + 1, N, 2)`` and ``(K2 + 1, N, 2)``, with ``j1[-1] == j2[0]``.
+        floor: smallest clearance a new pair may reach at a sample (mm).
+        coarse: shifts are searched downward in strides of this many samples, then refined
+            sample by sample above the first one found clear.
+
+    Returns:
+        ``(joints, shift in samples)``; a shift of 0 is the legs one after the other.
+    """
+    if not np.array_equal(j1[-1], j2[0]):
+        raise ValueError("the legs do not meet at one configuration")
+    a, b = _phases(j1, j2)
+    k1 = len(j1) - 1
+    s_max = max(0, int(np.min(k1 - a + b)))
+    coarse = max(1, coarse)
+    found = 0
+    for s in range(s_max, 0, -coarse):
+        if _new_pairs_clear(scenario, j1, j2, a, b, s, floor):
+            found = s
+            break
+    if found:
+        for s in range(min(s_max, found + coarse - 1), found, -1):
+            if _new_pairs_clear(scenario, j1, j2, a, b, s, floor):
+                found = s
+                break
+    joints, _ = _combined(j1, j2, b, found)
+    return joints, found

@@ -1,0 +1,25 @@
+"""The route settings every planner under the coordination layer shares (``mpc``, ``dnf``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from fiberplan.settings import setting
+
+ROUTES = ("direct", "reverse", "via_datum", "via_fold", "auto")
+"""Values of the ``route`` setting."""
+
+
+@dataclass(frozen=True)
+class RouteSettings:
+    """Fields of a planner's settings read by the coordination layer (a planner's settings
+    dataclass derives from this one and adds ``route_fallback_planner``)."""
+
+    route: str = setting("auto", "how the move is planned: the planner alone (direct), reversed, through the datum, or chosen by "
+                         "the scenario's structure (auto)", choices=ROUTES, group="route")
+    route_attempts: int = setting(4, "attempts per leg: each from where the previous one stopped, until every positioner arrives",
+                                  low=1, high=50, group="route")
+    route_restarts: bool = setting(True, "a complete leg is planned again from where most of its positioners had arrived; the "
+                                   "shortest is kept", group="route")
+    route_overlap: bool = setting(True, "the leg from the datum starts while the last ones still fold, where every new pair "
+                                  "keeps the safety margin", group="route")
