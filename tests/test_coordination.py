@@ -72,7 +72,7 @@ def test_overlap_keeps_new_pairs_apart_or_is_refused():
     assert 0 < shift < k and len(joints) == len(result.trajectory.joints) - shift
     assert fp.verify(sc, fp.Trajectory(np.arange(len(joints)) * result.settings["dt_s"], joints)).ok
     # No new pair can keep a floor of 100 mm: the overlap is then only as long as no new pair arises.
-    joints_far, shift_far = overlap_legs(sc, j1, j2, floor=100.0, coarse=5)
+    _, shift_far = overlap_legs(sc, j1, j2, floor=100.0, coarse=5)
     assert shift_far < shift
     a, b = _phases(j1, j2)
     assert _new_pairs_clear(sc, j1, j2, a, b, shift_far, floor=np.inf)  # true only where there is no new pair

@@ -47,6 +47,7 @@ class _Piece:
     attempts: int
     wall_s: float
     overlap_steps: int = 0
+    first_samples: int = 0  # samples before restarts and overlap shortened it (0: not known)
 
 
 def _join(scenario: Scenario, pieces: list[_Piece], dt: float) -> Trajectory:
@@ -63,8 +64,9 @@ def _reversed(joints: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------- strategies
 def _direct(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piece]:
     t0 = time.perf_counter()
-    joints, k, _ = complete_leg(scenario, plan_leg, opts.attempts, strict=False, restarts=opts.restarts)
-    return [_Piece("direct", joints, np.flatnonzero(scenario.has_target).tolist(), k, time.perf_counter() - t0)]
+    leg = complete_leg(scenario, plan_leg, opts.attempts, strict=False, restarts=opts.restarts)
+    return [_Piece("direct", leg.joints, np.flatnonzero(scenario.has_target).tolist(), leg.runs, time.perf_counter() - t0,
+                   first_samples=leg.first_samples)]
 
 
 def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piece] | None:
@@ -72,11 +74,11 @@ def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Pie
     the reversed plan brings every positioner exactly back to its start."""
     t0 = time.perf_counter()
     back = leg_scenario(scenario, scenario.target, scenario.start, "reverse")
-    joints, k, complete = complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts)
-    if not complete:
+    leg = complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts)
+    if not leg.complete:
         return None
-    return [_Piece("reverse (planned from the targets)", _reversed(joints), np.flatnonzero(scenario.has_target).tolist(), k,
-                   time.perf_counter() - t0)]
+    return [_Piece("reverse (planned from the targets)", _reversed(leg.joints), np.flatnonzero(scenario.has_target).tolist(), leg.runs,
+                   time.perf_counter() - t0, first_samples=leg.first_samples)]
 
 
 def _datum(scenario: Scenario) -> np.ndarray:
@@ -139,29 +141,26 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     back_start = np.where(movers[:, None], home, start)
     back = leg_scenario(scenario, back_start, hold, "unfold-reversed")
     # The two legs are independent: the second is planned in a forked process meanwhile.
-    (fold_joints, k1, ok1, w1), (back_joints, k2, ok2, w2) = both(
-        lambda: _timed(complete_leg, fold, plan_leg, opts.attempts, None, True, True, opts.restarts),
-        lambda: _timed(complete_leg, back, plan_leg, opts.attempts, None, True, True, opts.restarts),
+    first, second = both(
+        lambda: complete_leg(fold, plan_leg, opts.attempts, restarts=opts.restarts),
+        lambda: complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts),
     )
-    if not (ok1 and ok2):
+    if not (first.complete and second.complete):
         return None
     who = np.flatnonzero(movers).tolist()
-    unfold = _reversed(back_joints)
+    unfold = _reversed(second.joints)
+    plain = first.first_samples + second.first_samples - 1  # the two legs as first planned, one after the other
     if opts.overlap:
-        joints, shift = overlap_legs(scenario, fold_joints, unfold, opts.floor_mm, opts.coarse_steps)
+        joints, shift = overlap_legs(scenario, first.joints, unfold, opts.floor_mm, opts.coarse_steps)
         if shift:
             return [_Piece(f"{label}fold to the datum, then unfold from it (planned from the targets), overlapped by {shift} steps",
-                           joints, who, k1 + k2, w1 + w2, overlap_steps=shift)]
+                           joints, who, first.runs + second.runs, first.wall_s + second.wall_s, overlap_steps=shift,
+                           first_samples=plain)]
     return [
-        _Piece(f"{label}fold to the datum", fold_joints, who, k1, w1),
-        _Piece(f"{label}unfold from the datum (planned from the targets)", unfold, who, k2, w2),
+        _Piece(f"{label}fold to the datum", first.joints, who, first.runs, first.wall_s, first_samples=first.first_samples),
+        _Piece(f"{label}unfold from the datum (planned from the targets)", unfold, who, second.runs, second.wall_s,
+               first_samples=second.first_samples),
     ]
-
-
-def _timed(fn: Callable[..., tuple[np.ndarray, int, bool]], *args: Any) -> tuple[np.ndarray, int, bool, float]:
-    t0 = time.perf_counter()
-    joints, k, ok = fn(*args)
-    return joints, k, ok, time.perf_counter() - t0
 
 
 def _fix_up(scenario: Scenario, direct: _Piece, plan_leg: PlanLeg, opts: _Options, rounds: int = 3) -> list[_Piece] | None:
@@ -321,8 +320,11 @@ def _leg_stats(scenario: Scenario, pieces: list[_Piece], dt: float) -> dict[str,
     for p in pieces:
         duration = (len(p.joints) - 1) * dt
         legs.append({"leg": p.name, "t0_s": t, "t1_s": t + duration, "attempts": p.attempts, "moved": len(p.moved),
-                     "plan_wall_s": p.wall_s, "overlap_s": p.overlap_steps * dt})
+                     "plan_wall_s": p.wall_s, "overlap_s": p.overlap_steps * dt, "first_plan_s": ((p.first_samples or len(p.joints)) - 1) * dt})
         t += duration
     carried = sorted({int(scenario.ids[i]) for p in pieces if "datum" in p.name for i in p.moved})
+    first = [(p.first_samples or len(p.joints)) - 1 for p in pieces]
+    # first_plan_s: the duration as the legs were first planned, one after the other, before restarts
+    # and overlap shortened them (through the datum: the plain two-leg plan).
     return {"legs": legs, "via_datum_ids": carried, "n_via_datum": len(carried),
-            "overlap_s": sum(p.overlap_steps for p in pieces) * dt}
+            "overlap_s": sum(p.overlap_steps for p in pieces) * dt, "first_plan_s": sum(first) * dt}

@@ -13,6 +13,7 @@ to resolve one by one.
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -20,6 +21,19 @@ import numpy as np
 from fiberplan.geometry import motion_bound, path_clearance, point_extents
 from fiberplan.scenario import TARGET_JOINTS, TARGET_NONE, Scenario, _replace
 from fiberplan.trajectory import PlanResult
+
+
+@dataclasses.dataclass(frozen=True)
+class Leg:
+    """A planned leg: ``joints`` ``(K, N, 2)``, the planner ``runs`` it took, whether it is
+    ``complete``, and the samples it had before restarts shortened it (``first_samples``)."""
+
+    joints: np.ndarray
+    runs: int
+    complete: bool
+    first_samples: int
+    wall_s: float = 0.0
+
 
 PlanLeg = Callable[..., PlanResult]
 """Plans one leg with the run's planner and settings (``route = direct``); ``time_limit_s``
@@ -55,19 +69,23 @@ def at_targets(scenario: Scenario, joints: np.ndarray) -> np.ndarray:
 def complete_leg(
     leg: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None = None, unblock: bool = True, strict: bool = True,
     restarts: float | None = None,
-) -> tuple[np.ndarray, int, bool]:
+) -> Leg:
     """Plan ``leg``, then again from where each attempt stopped, until every positioner sits on
     its target, an attempt brings none closer, or ``time_limit_s`` of motion is used up. When an
     attempt stalls on folded neighbours in the way (a fold whose datum blocks the last ones),
     those neighbours are parked at another alpha, folded (:func:`_parking`), while the blocked
-    ones arrive, and come back in the next attempt. A complete leg is then shortened by restarts
-    when ``restarts`` is given: the planner's sample period (s) (:func:`shorten_leg`). Returns
-    ``(joints (K, N, 2), planner runs, complete)``."""
+    ones arrive, and come back in the next attempt. A leg complete in one run is then shortened
+    by restarts when ``restarts`` is given: the planner's sample period (s) (:func:`shorten_leg`)."""
+    t0 = time.perf_counter()
     joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict)
-    if complete and restarts:
+    first = len(joints)
+    # Restarts help a leg whose planner brought everyone home in one run, its stragglers late; a
+    # leg that needed further attempts has stragglers that restarts leave stuck again (measured
+    # on MOONS 500 folds: every restart incomplete), at the cost of a planner run each.
+    if complete and restarts and runs == 1:
         joints, more = shorten_leg(leg, joints, plan_leg, restarts)
         runs += more
-    return joints, runs, complete
+    return Leg(joints, runs, complete, first, time.perf_counter() - t0)
 
 
 def shorten_leg(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: float, rounds: int = 2) -> tuple[np.ndarray, int]:
