@@ -163,11 +163,7 @@ def _execute(
         q_next[waiting | unplaced | scenario.locked] = q[waiting | unplaced | scenario.locked]
         q_next, held, _ = safety.apply(q, q_next, c_now, first)
         held_total += int(held.sum())
-        moved = np.any(q_next != q, axis=1)
-        pairs = scenario.pairs
-        if len(pairs):
-            changed = np.flatnonzero(moved[pairs[:, 0]] | moved[pairs[:, 1]])
-            c_now[changed] = safety.clearance(q_next, pairs[changed])
+        safety.refresh(c_now, q, q_next)
         q = q_next
         history.append(q.copy())
         if progress is not None and step % 50 == 0:

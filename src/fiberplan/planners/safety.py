@@ -57,6 +57,14 @@ class SafetyLayer:
             return np.zeros(0)
         return pair_clearance(self.inst, self.base, self.orient, joints, pairs).clearance.min(axis=-1)
 
+    def refresh(self, c_now: np.ndarray, q: np.ndarray, q_next: np.ndarray) -> None:
+        """Update ``c_now`` (the clearance of every scenario pair) in place after the step ``q -> q_next``:
+        only pairs with a positioner that moved change."""
+        if len(self.pairs):
+            moved = np.any(q_next != q, axis=1)
+            changed = np.flatnonzero(moved[self.pairs[:, 0]] | moved[self.pairs[:, 1]])
+            c_now[changed] = self.clearance(q_next, self.pairs[changed])
+
     def _between(self, pairs: np.ndarray, qi: np.ndarray, qj: np.ndarray) -> np.ndarray:
         """Clearance of row-matched pairs with ``i`` at ``qi`` and ``j`` at ``qj``."""
         i, j = pairs[:, 0], pairs[:, 1]

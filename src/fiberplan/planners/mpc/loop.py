@@ -170,11 +170,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             plan = np.where(held[:, None, None], new_plan, shifted)
             own_plan = np.where(held[:, None, None], q_next[:, None, :], shifted)
             v_prev = (q_next - q) / step_rad
-            # Clearances change only for pairs with a moving positioner.
-            moved = np.any(q_next != q, axis=1)
-            if len(pairs):
-                changed = np.flatnonzero(moved[pairs[:, 0]] | moved[pairs[:, 1]])
-                c_now[changed] = safety.clearance(q_next, pairs[changed])
+            safety.refresh(c_now, q, q_next)  # clearances change only for pairs with a moving positioner
             q = q_next
             history.append(q.copy())
             if progress is not None and step % 20 == 0:
