@@ -103,7 +103,7 @@ def setting(
 def range_text(meta: dict[str, Any]) -> str:
     """The valid values of a setting in words: ``[0.001, 1]``, ``(0, 1]``, ``one of a, b``..."""
     if meta.get("choices") is not None:
-        text = "one of " + ", ".join(str(c) for c in meta["choices"])
+        text = "one of " + ", ".join(str(c) for c in meta["choices"] if c is not None)
     elif meta.get("kind") == "bool":
         text = "true or false"
     elif meta.get("low") is None and meta.get("high") is None:
