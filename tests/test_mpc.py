@@ -48,7 +48,10 @@ def test_mpc_small_is_collision_free(instrument, n, kind, seed):
     result = plan(scenario, "mpc", {"max_duration_factor": 2.0})
     _check_safe(result)
     assert result.planner == "mpc"
-    assert result.stats["n_steps"] == len(result.trajectory.times) - 1
+    if result.stats.get("planner_runs", 1) == 1:
+        assert result.stats["n_steps"] == len(result.trajectory.times) - 1
+    else:  # the coordination layer's runs, summed; overlapped legs are shorter than their sum
+        assert result.stats["n_steps"] >= len(result.trajectory.times) - 1 - round(result.stats["overlap_s"] / result.settings["dt_s"])
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])

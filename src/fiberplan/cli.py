@@ -352,13 +352,20 @@ def scenario(instrument: str, positioners: int, radius_mm: float | None, kind: s
 
 @cli.command()
 @click.argument("name", required=False)
-def instruments(name: str | None) -> None:
+@click.option("--toml", "as_toml", is_flag=True, help="Print the instrument file itself (a complete file to copy and edit).")
+def instruments(name: str | None, as_toml: bool) -> None:
     """List the instrument presets, or show one with the source of every number."""
-    from fiberplan.instrument_io import load_instrument, preset_names
+    from fiberplan.instrument_io import instrument_text, load_instrument, preset_names
 
+    if as_toml:
+        if name is None:
+            raise click.UsageError("--toml needs an instrument: fiberplan instruments NAME --toml")
+        click.echo(instrument_text(name), nl=False)
+        return
     if name is None:
+        width = max(len(p) for p in preset_names())
         for preset in preset_names():
-            click.echo(f"{preset:8s} {load_instrument(preset).description}")
+            click.echo(f"{preset:{width}s}  {load_instrument(preset).description}")
         return
     inst, _, used = _instrument_arg(name)
     click.echo(f"# {used}", err=True)

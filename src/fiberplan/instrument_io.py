@@ -86,6 +86,21 @@ def instrument_source(name_or_path: str | Path) -> tuple[str, str | None]:
     )
 
 
+def instrument_text(name_or_path: str | Path) -> str:
+    """The text of a preset's file (or of an instrument file): a complete file to copy and edit.
+
+    Raises:
+        InstrumentError: neither a preset nor a readable file.
+    """
+    kind, where = instrument_source(name_or_path)
+    if kind == "preset":
+        return (resources.files("fiberplan") / "instruments" / f"{where}.toml").read_text(encoding="utf-8")
+    try:
+        return Path(str(where)).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise InstrumentError(f"instrument file {where!r} cannot be read ({e})") from e
+
+
 def load_instrument(name_or_path: str | Path) -> Instrument:
     """Load a preset by name (``desi``, ``moons``, ``sdss``) or an instrument TOML file by path.
 
@@ -114,16 +129,16 @@ def load_instrument(name_or_path: str | Path) -> Instrument:
 
 def _table(data: dict[str, Any], key: str, origin: str) -> dict[str, Any]:
     if key not in data:
-        raise InstrumentError(f"{origin}: missing key {key!r} (a [{key}] table); see src/fiberplan/instruments/desi.toml for the layout")
+        raise InstrumentError(f"{origin}: missing key {key!r} (a [{key}] table); see a complete file with: fiberplan instruments desi --toml")
     value = data[key]
     if not isinstance(value, dict):
-        raise InstrumentError(f"{origin}: [{key}] must be a table; see src/fiberplan/instruments/desi.toml for the layout")
+        raise InstrumentError(f"{origin}: [{key}] must be a table; see a complete file with: fiberplan instruments desi --toml")
     return value
 
 
 def _number(table: dict[str, Any], key: str, where: str) -> float:
     if key not in table:
-        raise InstrumentError(f"{where}: missing key {key!r}; see src/fiberplan/instruments/desi.toml for the layout")
+        raise InstrumentError(f"{where}: missing key {key!r}; see a complete file with: fiberplan instruments desi --toml")
     value = table[key]
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InstrumentError(f"{where}: {key} must be a number, found {value!r}")
@@ -200,7 +215,7 @@ def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> In
         if key in data and not isinstance(data[key], str):
             raise InstrumentError(f"{origin}: {key} must be a string, found {data[key]!r}")
     if "name" not in data:
-        raise InstrumentError(f"{origin}: missing key 'name'; see src/fiberplan/instruments/desi.toml for the layout")
+        raise InstrumentError(f"{origin}: missing key 'name'; see a complete file with: fiberplan instruments desi --toml")
     where_g = f"{origin}: [geometry]"
     try:
         instrument = Instrument(

@@ -372,6 +372,11 @@ class Scenario:
             k = bad[np.argmin(clearance[bad])]
             i, j = pairs[k]
             fix = "move one of them first or change a start angle" if what.startswith("start") else "change one of their targets"
+            if len(bad) > max(2, 0.1 * len(pairs)):
+                # Many pairs at once is rarely a few bad angles: a frame or convention is off.
+                fix += (f"; {len(bad)} of {len(pairs)} neighbour pairs collide, which suggests a wrong orient_deg (the angle, in degrees, "
+                        "that turns each positioner's x axis into the focal plane's), a wrong beta convention of the angles "
+                        "(beta = 0 with the arms stretched out unless the file says otherwise) or base positions in the wrong unit")
             raise ScenarioError(
                 f"positioners {self.ids[i]} and {self.ids[j]} collide in the {what} "
                 f"(capsules overlap by {-clearance[k]:.4f} mm; {len(bad)} colliding pair(s) in all); {fix}"
