@@ -67,7 +67,7 @@ def test_hand_built_clear_scenario_verifies_clean(tmp_path):
 
 def test_scenario_show_animate(tmp_path):
     scen = tmp_path / "m.json"
-    assert run("scenario", "--instrument", "moons", "-n", 19, "--kind", "unfold", "--seed", 2, "--out", scen).returncode == 0
+    assert run("scenario", "--instrument", "moons-capsules", "-n", 19, "--kind", "unfold", "--seed", 2, "--out", scen).returncode == 0
     out = tmp_path / "m.h5"
     proc = run("plan", "--scenario", scen, "--planner", "straight", "--out", out, "--picture", tmp_path / "p.png", "-q")
     assert proc.returncode == 0, proc.stderr

@@ -25,7 +25,7 @@ def _check(scenario, result):
 
 @pytest.mark.parametrize("planner", ["mpc", "dnf"])
 def test_unfold_is_the_reverse_of_a_fold(planner):
-    sc = fp.make_scenario("moons", 19, "unfold", 1)
+    sc = fp.make_scenario("moons-capsules", 19, "unfold", 1)
     result = fp.plan(sc, planner)
     assert result.stats["route"] == "auto" and result.stats["chosen"] == "reverse"
     summary = _check(sc, result)
@@ -36,7 +36,7 @@ def test_unfold_is_the_reverse_of_a_fold(planner):
 
 
 def test_via_datum_passes_through_the_datum_and_reaches_every_target():
-    sc = fp.make_scenario("moons", 19, "random", 2)
+    sc = fp.make_scenario("moons-capsules", 19, "random", 2)
     result = fp.plan(sc, "mpc", {"route": "via_datum", "route_overlap": False})
     summary = _check(sc, result)
     assert summary["reached"] == 19
@@ -49,7 +49,7 @@ def test_via_datum_passes_through_the_datum_and_reaches_every_target():
 
 
 def test_overlapped_legs_still_pass_every_positioner_through_the_datum_and_end_sooner():
-    sc = fp.make_scenario("moons", 19, "random", 2)
+    sc = fp.make_scenario("moons-capsules", 19, "random", 2)
     apart = fp.plan(sc, "mpc", {"route": "via_datum", "route_overlap": False})
     together = fp.plan(sc, "mpc", {"route": "via_datum"})
     summary = _check(sc, together)
@@ -64,7 +64,7 @@ def test_overlapped_legs_still_pass_every_positioner_through_the_datum_and_end_s
 def test_overlap_keeps_new_pairs_apart_or_is_refused():
     from fiberplan.planners.coordination.retime import _new_pairs_clear, _phases, overlap_legs
 
-    sc = fp.make_scenario("moons", 19, "random", 2)
+    sc = fp.make_scenario("moons-capsules", 19, "random", 2)
     result = fp.plan(sc, "mpc", {"route": "via_datum", "route_overlap": False})
     k = round(result.stats["legs"][0]["t1_s"] / result.settings["dt_s"])
     j1, j2 = result.trajectory.joints[: k + 1], result.trajectory.joints[k:]
@@ -80,7 +80,7 @@ def test_overlap_keeps_new_pairs_apart_or_is_refused():
 
 
 def test_restarts_shorten_a_leg_with_stragglers_and_never_lengthen_one():
-    sc = fp.make_scenario("moons", 61, "random", 0)
+    sc = fp.make_scenario("moons-capsules", 61, "random", 0)
     fold = leg_scenario(sc, sc.target, np.broadcast_to(np.array(sc.instrument.datum_rad), (61, 2)), "fold")
     plain = fp.plan(fold, "mpc", {"route": "direct"})
     once = fp.plan(fold, "mpc", {"route_restarts": False})  # a fold: the planner alone, through the layer
@@ -94,7 +94,7 @@ def test_restarts_shorten_a_leg_with_stragglers_and_never_lengthen_one():
     np.testing.assert_array_equal(shortened.trajectory.joints[:100], plain.trajectory.joints[:100])  # a restart keeps the start
 
 
-@pytest.mark.parametrize(("instrument", "n", "seed"), [("moons", 19, 0), ("sdss", 19, 1)])
+@pytest.mark.parametrize(("instrument", "n", "seed"), [("moons-capsules", 19, 0), ("sdss", 19, 1)])
 def test_auto_reaches_every_target_on_dense_instruments_and_is_never_worse_than_two_legs(instrument, n, seed):
     sc = fp.make_scenario(instrument, n, "random", seed)
     auto = fp.plan(sc, "mpc")
@@ -113,7 +113,7 @@ def test_auto_keeps_the_direct_plan_where_it_is_complete():
 
 
 def test_the_reactive_mpc_alone_stays_selectable():
-    sc = fp.make_scenario("moons", 19, "random", 0)
+    sc = fp.make_scenario("moons-capsules", 19, "random", 0)
     settings = {"route": "direct", "start_schedule": False}
     reactive = fp.plan(sc, "mpc", settings)
     alone = plan_mpc(sc, fp.make_settings("mpc", sc, settings))
@@ -122,7 +122,7 @@ def test_the_reactive_mpc_alone_stays_selectable():
 
 
 def _locked_infeasible_scenario():
-    sc = fp.make_scenario("moons", 19, "random", 5)
+    sc = fp.make_scenario("moons-capsules", 19, "random", 5)
     data = sc.to_dict()
     rows = data["positioners"]
     # Positioner 3 is locked where it starts; 7 has no target; 0 and 1 get targets that collide.
@@ -169,7 +169,7 @@ def test_prioritized_is_a_registered_baseline():
 
 
 def test_command_line_unfold_reaches_all_and_names_the_route(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "fiberplan.cli", "plan", "--instrument", "moons", "-n", "61", "--scenario-kind",
+    proc = subprocess.run([sys.executable, "-m", "fiberplan.cli", "plan", "--instrument", "moons-capsules", "-n", "61", "--scenario-kind",
                            "unfold", "--seed", "1", "--planner", "mpc", "--json", "-q"], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)

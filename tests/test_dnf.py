@@ -39,8 +39,8 @@ def _check(scenario, result):
         ("desi", 7, "random", 0),
         ("desi", 19, "random", 1),
         ("desi", 19, "clustered", 2),
-        ("moons", 7, "unfold", 0),
-        ("moons", 7, "random", 1),
+        ("moons-capsules", 7, "unfold", 0),
+        ("moons-capsules", 7, "random", 1),
         ("sdss", 7, "random", 0),
         ("sdss", 7, "fold", 1),
     ],
@@ -63,7 +63,7 @@ def test_dnf_is_collision_free_and_within_limits(instrument, n, kind, seed):
     ],
 )
 def test_moons_variants_are_collision_free(overrides):
-    scenario = make_scenario("moons", 7, "unfold", 2)
+    scenario = make_scenario("moons-capsules", 7, "unfold", 2)
     _check(scenario, plan(scenario, "dnf", overrides))
 
 
@@ -175,7 +175,7 @@ def test_convergence_condition_as_printed():
 
 
 def test_convergence_condition_takes_the_worst_capsule_combination():
-    inst = load_instrument("moons")
+    inst = load_instrument("moons-capsules")
     check = convergence_condition(inst, 1.0, 100.0, 2.0)
     bounds = [
         convergence_bound(inst.extent_mm, d + 2.0, d)
@@ -215,7 +215,7 @@ def test_smooth_potential_has_no_slope_jump_at_the_envelope():
 
 
 def test_ellipse_distance_gradient_matches_finite_differences():
-    scenario = make_scenario("moons", 7, "random", 3)
+    scenario = make_scenario("moons-capsules", 7, "random", 3)
     inst, q, pairs = scenario.instrument, scenario.start.copy(), scenario.pairs
     r, grad_i, grad_j = ellipse_arm_distance(inst, 0, scenario.base_xy, scenario.orient, q, pairs)
     assert np.all(r > 0)
@@ -234,7 +234,7 @@ def test_ellipse_distance_gradient_matches_finite_differences():
 
 
 def test_ellipse_distance_of_parallel_arms_touching_side_by_side_is_twice_the_radius():
-    inst = load_instrument("moons")
+    inst = load_instrument("moons-capsules")
     cap = inst.capsules[0]
     base = np.array([[0.0, 0.0], [0.0, 2 * cap.radius_mm]])
     joints = np.array([[0.0, 0.0], [0.0, 0.0]])
@@ -242,7 +242,7 @@ def test_ellipse_distance_of_parallel_arms_touching_side_by_side_is_twice_the_ra
     assert r[0] == pytest.approx(2 * cap.radius_mm)
 
 
-@pytest.mark.parametrize("instrument", ["desi", "moons", "sdss"])
+@pytest.mark.parametrize("instrument", ["desi", "moons-capsules", "sdss"])
 def test_defaults_follow_the_instrument(instrument):
     inst = load_instrument(instrument)
     settings = DnfSettings.for_instrument(inst)
@@ -300,9 +300,9 @@ def test_desi_500_meets_the_issue_target():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("instrument", ["moons", "sdss"])
+@pytest.mark.parametrize("instrument", ["moons-capsules", "sdss"])
 def test_dnf_61_is_collision_free_on_long_arm_instruments(instrument):
-    scenario = make_scenario(instrument, 61, "unfold" if instrument == "moons" else "random", 0)
+    scenario = make_scenario(instrument, 61, "unfold" if instrument == "moons-capsules" else "random", 0)
     result = plan(scenario, "dnf", {"route": "direct"})
     _check(scenario, result)
     assert set(result.outcome.tolist()) <= {"reached", "deadlocked", "unfinished", "held"}

@@ -182,7 +182,7 @@ OPTIONS = st.sampled_from([
     "--max-events", "--x", "--rate", "--seed-list", "--workers", "--bogus",
 ])
 VALUES = st.one_of(
-    st.sampled_from(["desi", "moons", "sdss", "nosuch", "straight", "dnf", "warp", "0", "-1", "7", "1e6", "nan", "inf", "-3",
+    st.sampled_from(["desi", "moons-capsules", "sdss", "nosuch", "straight", "dnf", "warp", "0", "-1", "7", "1e6", "nan", "inf", "-3",
                      "99999999999999999999999", "x.h5", "x.xyz", "/dev/null", "dt_s=0.02", "dt_s=-1", "horizon_steps=1e9",
                      "bogus=1", "random", "fold", "hard", "3,2", "a,b", ""]),
     st.text(max_size=6),

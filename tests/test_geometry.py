@@ -13,7 +13,7 @@ from fiberplan.instrument_io import load_instrument
 coord = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
 point = st.tuples(coord, coord)
 angles = st.floats(-np.pi, np.pi, allow_nan=False)
-INSTRUMENTS = {name: load_instrument(name) for name in ("desi", "moons", "sdss")}
+INSTRUMENTS = {name: load_instrument(name) for name in ("desi", "moons-capsules", "sdss")}
 
 
 def _point_segment(p, a, b):
@@ -150,7 +150,7 @@ def test_combo_clearances_equal_segment_distance_bit_for_bit(name):
 
 
 def test_leading_time_axes_are_supported():
-    inst, base = _two_positioners("moons", 1.0)
+    inst, base = _two_positioners("moons-capsules", 1.0)
     rng = np.random.default_rng(1)
     joints = rng.uniform(0.1, 3.0, size=(5, 2, 2))
     stacked = pair_clearance(inst, base, np.zeros(2), joints, np.array([[0, 1]])).clearance

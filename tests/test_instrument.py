@@ -16,10 +16,10 @@ NUMBERED_KEYS = (
 
 
 def test_presets_are_shipped():
-    assert set(preset_names()) >= {"desi", "moons", "sdss"}
+    assert set(preset_names()) >= {"desi", "moons-capsules", "sdss"}
 
 
-@pytest.mark.parametrize("name", ["desi", "moons", "sdss"])
+@pytest.mark.parametrize("name", ["desi", "moons-capsules", "sdss"])
 def test_every_number_has_a_source(name):
     inst = load_instrument(name)
     missing = [key for key in NUMBERED_KEYS if not inst.sources.get(key)]
@@ -38,7 +38,7 @@ def test_desi_numbers_match_reference_000():
 
 
 def test_moons_folded_convention_is_converted():
-    inst = load_instrument("moons")
+    inst = load_instrument("moons-capsules")
     assert math.degrees(inst.beta_limits_rad[0]) == pytest.approx(0.0)
     assert math.degrees(inst.beta_limits_rad[1]) == pytest.approx(330.0)
     assert math.degrees(inst.datum_rad[1]) == pytest.approx(180.0)

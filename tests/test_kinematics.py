@@ -18,7 +18,7 @@ from fiberplan.kinematics import (
     parity_of,
 )
 
-INSTRUMENTS = {name: load_instrument(name) for name in ("desi", "moons", "sdss")}
+INSTRUMENTS = {name: load_instrument(name) for name in ("desi", "moons-capsules", "sdss")}
 angles = st.floats(-np.pi, np.pi, allow_nan=False)
 
 
@@ -46,7 +46,7 @@ def test_desi_has_only_positive_parity():
 
 
 def test_moons_has_both_parities():
-    inst = INSTRUMENTS["moons"]
+    inst = INSTRUMENTS["moons-capsules"]
     point = np.array([[20.0, 3.0]])
     plus = inverse_kinematics(inst, np.zeros((1, 2)), np.zeros(1), point, np.array([1]))
     minus = inverse_kinematics(inst, np.zeros((1, 2)), np.zeros(1), point, np.array([-1]))
@@ -88,7 +88,7 @@ def test_into_range_never_wraps_across_a_stop():
 
 
 def test_best_parity_is_the_faster_move():
-    inst = INSTRUMENTS["moons"]
+    inst = INSTRUMENTS["moons-capsules"]
     point = np.array([[20.0, 3.0]])
     base, ori = np.zeros((1, 2)), np.zeros(1)
     plus = inverse_kinematics(inst, base, ori, point, np.array([1]))

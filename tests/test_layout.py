@@ -44,7 +44,7 @@ def test_focal_plane_by_radius():
     assert len(base) > 300
 
 
-@pytest.mark.parametrize("name,expected", [("desi", 6), ("moons", 18), ("sdss", 18)])
+@pytest.mark.parametrize("name,expected", [("desi", 6), ("moons-capsules", 18), ("sdss", 18)])
 def test_interior_neighbour_count_comes_from_geometry(name, expected):
     inst = load_instrument(name)
     base = hex_patch(61, inst.pitch_mm)

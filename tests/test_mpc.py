@@ -38,8 +38,8 @@ def _check_safe(result):
     [
         ("desi", 19, "random", 1),
         ("desi", 19, "clustered", 2),
-        ("moons", 7, "unfold", 1),
-        ("moons", 7, "random", 3),
+        ("moons-capsules", 7, "unfold", 1),
+        ("moons-capsules", 7, "random", 3),
         ("sdss", 7, "random", 1),
     ],
 )
@@ -77,14 +77,14 @@ def test_mpc_resolves_conflicts_with_qps_on_desi_37():
 # ----------------------------------------------------------------------------- settings
 def test_defaults_scale_with_the_instrument():
     desi = MpcSettings.for_instrument(load_instrument("desi"))
-    moons = MpcSettings.for_instrument(load_instrument("moons"))
+    moons = MpcSettings.for_instrument(load_instrument("moons-capsules"))
     assert desi.dt_s == pytest.approx(0.01)
     assert moons.dt_s == pytest.approx(0.05)
     assert moons.conflict_radius_mm > desi.conflict_radius_mm
     assert desi.safety_margin_mm > 0
 
 
-@pytest.mark.parametrize("name", ["desi", "moons", "sdss"])
+@pytest.mark.parametrize("name", ["desi", "moons-capsules", "sdss"])
 def test_default_time_budget_is_the_dnfs(name):
     # Both planners get 4 x the lower bound plus one turn of the slower joint by default, so
     # that a comparison does not hand one of them more time.
@@ -325,7 +325,7 @@ def test_outranks_lets_a_waiter_defer_whatever_the_rank():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("instrument", "kind"), [("moons", "unfold"), ("moons", "random"), ("sdss", "random")])
+@pytest.mark.parametrize(("instrument", "kind"), [("moons-capsules", "unfold"), ("moons-capsules", "random"), ("sdss", "random")])
 def test_mpc_is_collision_free_at_61(instrument, kind):
     result = plan(make_scenario(instrument, 61, kind, 1), "mpc")
     _check_safe(result)
@@ -410,7 +410,7 @@ def test_instrument_file_sets_mpc_defaults():
     desi = load_instrument("desi")
     assert MpcSettings.for_instrument(desi).start_schedule  # desi.toml: [planner_defaults.mpc]
     assert MpcSettings.for_instrument(desi).schedule_l_paths
-    moons = MpcSettings.for_instrument(load_instrument("moons"))  # moons.toml: timed paths and the repair, no L-shaped moves
+    moons = MpcSettings.for_instrument(load_instrument("moons-capsules"))  # moons.toml: timed paths and the repair, no L-shaped moves
     assert moons.start_schedule and moons.schedule_space_time and moons.schedule_repair and not moons.schedule_l_paths
     assert moons.schedule_cell_steps == 16 and not moons.route_progress
     sdss = MpcSettings.for_instrument(load_instrument("sdss"))  # sdss.toml: the MOONS settings

@@ -36,7 +36,7 @@ def _route_clearance(sc, i, q_from, waypoints, j, q_j, step_rad):
     return _clearance_to(sc, i, pts, np.array([j]), q_j[None, :]).min()
 
 
-@pytest.mark.parametrize("instrument", ["desi", "moons", "sdss"])
+@pytest.mark.parametrize("instrument", ["desi", "moons-capsules", "sdss"])
 def test_grid_clearances_are_exact_below_the_cutoff(instrument):
     sc = make_scenario(instrument, 19, "random", 3)
     settings = make_settings("mpc", sc)

@@ -41,7 +41,7 @@ def runs(tmp_path_factory):
     """A verified DESI 19 and MOONS 7 run on disk."""
     folder = tmp_path_factory.mktemp("runs")
     out = {}
-    for inst, n in (("desi", 19), ("moons", 7)):
+    for inst, n in (("desi", 19), ("moons-capsules", 7)):
         path = folder / f"{inst}.h5"
         proc = cli("plan", "--instrument", inst, "-n", n, "--planner", "dnf", "--seed", 1, "--out", path, "-q", "--json")
         assert proc.returncode == 0, proc.stderr
@@ -59,7 +59,7 @@ def spoil(src: Path, dst: Path, edit) -> Path:
 
 
 # ---------------------------------------------------------------- 1. non-finite samples fail verification
-@pytest.mark.parametrize("instrument", ["desi", "moons"])
+@pytest.mark.parametrize("instrument", ["desi", "moons-capsules"])
 @pytest.mark.parametrize("where", ["one sample", "whole positioner"])
 def test_verify_rejects_non_finite_samples(runs, tmp_path, instrument, where):
     def edit(f):
@@ -122,7 +122,7 @@ def flaky_osqp(monkeypatch):
     return calls
 
 
-@pytest.mark.parametrize(("instrument", "n", "kind"), [("desi", 61, "random"), ("moons", 19, "unfold")])
+@pytest.mark.parametrize(("instrument", "n", "kind"), [("desi", 61, "random"), ("moons-capsules", 19, "unfold")])
 def test_non_finite_or_raising_qp_solves_hold_and_are_counted(flaky_osqp, instrument, n, kind):
     sc = fp.make_scenario(instrument, n, kind, 2)
     result = fp.plan(sc, "mpc", {"start_schedule": False, "route": "direct"})
@@ -299,7 +299,7 @@ def test_misspelled_instrument_key_is_refused(tmp_path):
 
     for table, key, good in ((None, "beta_convension", "beta_convention"), ("geometry", "pitch", "pitch_mm"),
                              ("planner_defaults", "mcp", "mpc")):
-        data = fp.load_instrument("moons").to_dict()
+        data = fp.load_instrument("moons-capsules").to_dict()
         (data if table is None else data[table])[key] = "folded" if table is None else ({} if table == "planner_defaults" else 1.0)
         path = tmp_path / f"{key}.toml"
         path.write_text(tomli_w.dumps(data))
@@ -372,7 +372,7 @@ def test_instrument_with_scenario_is_an_explicit_override(tmp_path):
     summary = json.loads(cli("plan", "--scenario", path, "--planner", "straight", "--json").stdout)
     assert summary["instrument"] == "sdss" and summary["instrument_source"].startswith("from the scenario file")
     # The same scenario on another instrument: explicit, said, and validated (sdss targets fit moons' hard stops).
-    proc = cli("plan", "--scenario", path, "--instrument", "moons", "--planner", "straight", "--json")
+    proc = cli("plan", "--scenario", path, "--instrument", "moons-capsules", "--planner", "straight", "--json")
     assert proc.returncode == 2 and "on instrument 'moons'" in proc.stderr
     assert_refused(cli("plan", "--scenario", path, "-n", 19), "--positioners cannot be used with --scenario")
 
@@ -424,8 +424,8 @@ def test_bad_scenario_files_are_one_line_and_exit_2(scenario_dict, tmp_path, edi
 
 
 def test_a_folder_named_like_a_preset_does_not_hide_it(tmp_path):
-    (tmp_path / "moons").mkdir()
-    proc = cli("plan", "--instrument", "moons", "-n", 7, "--planner", "straight", "--json", cwd=tmp_path)
+    (tmp_path / "moons-capsules").mkdir()
+    proc = cli("plan", "--instrument", "moons-capsules", "-n", 7, "--planner", "straight", "--json", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["instrument_source"] == "preset moons"
     table = fp.load_instrument("desi").to_dict()

@@ -28,7 +28,7 @@ def _pair_scenario(start_deg, target_deg, instrument="desi"):
     )
 
 
-@pytest.mark.parametrize("instrument", ["desi", "moons", "sdss"])
+@pytest.mark.parametrize("instrument", ["desi", "moons-capsules", "sdss"])
 def test_straight_moves_on_random_targets_collide(instrument):
     sc = make_scenario(instrument, 61, "random", 1)
     report = verify(sc, plan(sc, "straight").trajectory)
@@ -123,7 +123,7 @@ def test_verifier_imports_no_planner():
     assert out == "[]"
 
 
-@pytest.mark.parametrize("instrument", ["desi", "moons", "sdss"])
+@pytest.mark.parametrize("instrument", ["desi", "moons-capsules", "sdss"])
 def test_pruning_keeps_every_sampled_collision(instrument):
     from fiberplan.geometry import min_pair_clearance
 

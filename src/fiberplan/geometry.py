@@ -42,8 +42,8 @@ def motion_bound(rho: np.ndarray, dq: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=32)
 def capsule_tables(instrument: Instrument) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per-capsule arrays ``(on_alpha, start_mm, end_mm)`` and the same-layer ``combos (K, 2)``
-    with their radii sums ``(K,)``, computed once per instrument."""
+    """Per-capsule arrays ``(on_alpha, start_mm, end_mm)`` (along the arm) and the checked
+    ``combos (K, 2)`` with their radii sums ``(K,)``, computed once per instrument."""
     caps = instrument.capsules
     on_alpha = np.array([c.arm == "alpha" for c in caps])
     start_mm = np.array([c.start_mm for c in caps])
@@ -53,6 +53,17 @@ def capsule_tables(instrument: Instrument) -> tuple[np.ndarray, np.ndarray, np.n
     for arr in (on_alpha, start_mm, end_mm, combos, radii):
         arr.flags.writeable = False
     return on_alpha, start_mm, end_mm, combos, radii[combos[:, 0]] + radii[combos[:, 1]]
+
+
+@functools.lru_cache(maxsize=32)
+def _lateral(instrument: Instrument) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per-capsule offsets ``(start_y_mm, end_y_mm)`` to the arm's left, or ``None`` when every
+    capsule lies on its arm's axis (the fast path, unchanged)."""
+    start_y = np.array([c.start_y_mm for c in instrument.capsules])
+    end_y = np.array([c.end_y_mm for c in instrument.capsules])
+    if not (np.any(start_y) or np.any(end_y)):
+        return None
+    return start_y, end_y
 
 
 def capsule_segments(
@@ -79,8 +90,14 @@ def capsule_segments(
     origin_y = np.where(on_alpha, base_y[..., None], (base_y + instrument.alpha_arm_mm * sin_a)[..., None])
     dir_x = np.where(on_alpha, cos_a[..., None], np.cos(ab)[..., None])
     dir_y = np.where(on_alpha, sin_a[..., None], np.sin(ab)[..., None])
-    start = np.stack([origin_x + start_mm * dir_x, origin_y + start_mm * dir_y], axis=-1)
-    end = np.stack([origin_x + end_mm * dir_x, origin_y + end_mm * dir_y], axis=-1)
+    lateral = _lateral(instrument)
+    if lateral is None:
+        start = np.stack([origin_x + start_mm * dir_x, origin_y + start_mm * dir_y], axis=-1)
+        end = np.stack([origin_x + end_mm * dir_x, origin_y + end_mm * dir_y], axis=-1)
+        return start, end
+    start_y, end_y = lateral  # to the left: the direction turned by +90 degrees, (-dir_y, dir_x)
+    start = np.stack([origin_x + start_mm * dir_x - start_y * dir_y, origin_y + start_mm * dir_y + start_y * dir_x], axis=-1)
+    end = np.stack([origin_x + end_mm * dir_x - end_y * dir_y, origin_y + end_mm * dir_y + end_y * dir_x], axis=-1)
     return start, end
 
 
@@ -173,6 +190,15 @@ def combo_clearances(
     ``(..., C, 2)`` with broadcastable leading axes. With ``smallest``, only the smallest
     clearance over the combinations, shape ``(...)``.
     """
+    if instrument.polygons:
+        from fiberplan import zones
+
+        if smallest:
+            return zones.smallest(instrument, p_start, p_end, q_start, q_end)
+        lead = np.broadcast_shapes(p_start.shape[:-2], q_start.shape[:-2])
+        c = p_start.shape[-2]
+        flat = [np.broadcast_to(a, (*lead, c, 2)).reshape(-1, c, 2) for a in (p_start, p_end, q_start, q_end)]
+        return zones.clearances(instrument, *flat)[0].reshape(*lead, -1)
     _, start_mm, end_mm, combos, radii = capsule_tables(instrument)
     disc = start_mm == end_mm
     out = []
@@ -261,6 +287,10 @@ def pair_clearance(
     It is exact wherever the closest points are unique and the distance is positive.
     """
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    if instrument.polygons:
+        from fiberplan import zones
+
+        return zones.pair_clearance(instrument, base_xy, orient, joints, pairs, gradient=gradient)
     on_alpha, _, _, combos, combo_radii = capsule_tables(instrument)
     used, inverse = np.unique(pairs, return_inverse=True)
     if len(used) < joints.shape[-2]:  # capsules of the positioners the pairs name, only
@@ -318,6 +348,10 @@ def clearance_between(
     )
     start_i, end_i, start_j, end_j = start[:m], end[:m], start[m:], end[m:]
     ca, cb = combos[:, 0], combos[:, 1]
+    if instrument.polygons:
+        from fiberplan import zones
+
+        return zones.clearances(instrument, start_i, end_i, start_j, end_j)[0]
     dist, _, _ = segment_distance(start_i[:, ca], end_i[:, ca], start_j[:, cb], end_j[:, cb])
     return dist - combo_radii
 

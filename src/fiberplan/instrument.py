@@ -28,12 +28,15 @@ _RPM_TO_RAD_S = 2.0 * math.pi / 60.0
 
 @dataclass(frozen=True)
 class Capsule:
-    """A collision capsule: a segment along one arm plus a radius, on one layer.
+    """A collision capsule: a segment in one arm's frame plus a radius, on one layer.
 
-    The segment runs along the arm's axis from ``start_mm`` to ``end_mm``, measured from the
-    arm's joint (the base for ``alpha``, the elbow for ``beta``). A zero-length segment is a
-    disc. Two capsules of different positioners collide only when they share ``layer`` and
-    their segments are closer than the sum of their radii.
+    The segment runs from ``(start_mm, start_y_mm)`` to ``(end_mm, end_y_mm)`` in the arm's
+    frame: ``x`` along the arm from its joint (the base for ``alpha``, the elbow for ``beta``),
+    ``y`` to the arm's left; the ``y`` offsets are zero for a capsule on the arm's axis. A
+    zero-length segment is a disc. Without an interaction table, two capsules of different
+    positioners collide when they share ``layer`` and their segments are closer than the sum
+    of their radii. A capsule that is an edge of a :class:`Polygon` zone names it in ``zone``
+    (and may have a zero radius); any other capsule is a zone of its own.
     """
 
     name: str
@@ -42,15 +45,81 @@ class Capsule:
     end_mm: float
     radius_mm: float
     layer: int = 0
+    start_y_mm: float = 0.0
+    end_y_mm: float = 0.0
+    zone: str = ""
 
     def __post_init__(self) -> None:
         if self.arm not in ("alpha", "beta"):
             raise InstrumentError(f"capsule {self.name!r}: arm must be 'alpha' or 'beta', found {self.arm!r}")
-        for label, value in (("start_mm", self.start_mm), ("end_mm", self.end_mm), ("radius_mm", self.radius_mm)):
+        for label, value in (("start_mm", self.start_mm), ("end_mm", self.end_mm), ("radius_mm", self.radius_mm),
+                             ("start_y_mm", self.start_y_mm), ("end_y_mm", self.end_y_mm)):
             if not math.isfinite(value):
                 raise InstrumentError(f"capsule {self.name!r}: {label} must be finite, found {value}")
-        if self.radius_mm <= 0:
+        if self.radius_mm < 0 or (self.radius_mm == 0 and not self.zone):
             raise InstrumentError(f"capsule {self.name!r}: radius_mm must be > 0, found {self.radius_mm}")
+
+    @property
+    def zone_name(self) -> str:
+        """The zone this capsule belongs to: its polygon's name, else its own."""
+        return self.zone or self.name
+
+    @property
+    def reach_mm(self) -> float:
+        """Farthest distance of the segment from the arm's joint (mm)."""
+        ends = []
+        for x, y in ((self.start_mm, self.start_y_mm), (self.end_mm, self.end_y_mm)):
+            ends.append(abs(x) if y == 0.0 else math.hypot(x, y))
+        return max(ends)
+
+
+@dataclass(frozen=True)
+class Polygon:
+    """A convex polygon zone in one arm's frame (``x`` along the arm from its joint, ``y`` to its
+    left), padded by ``radius_mm`` (0: the polygon itself, as MOONS pads its zones by enlarging
+    them). Two zones collide when they overlap; the planners and the verifier measure the
+    distance between a polygon's edges (:meth:`edges`, capsules of the polygon's radius) and
+    the verifier also finds a zone lying wholly inside a polygon."""
+
+    name: str
+    arm: ArmName
+    vertices_mm: tuple[tuple[float, float], ...]
+    radius_mm: float = 0.0
+    layer: int = 0
+
+    def __post_init__(self) -> None:
+        if self.arm not in ("alpha", "beta"):
+            raise InstrumentError(f"zone {self.name!r}: arm must be 'alpha' or 'beta', found {self.arm!r}")
+        pts = np.asarray(self.vertices_mm, dtype=float)
+        if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 3:
+            raise InstrumentError(f"zone {self.name!r}: a polygon needs at least 3 vertices [x_mm, y_mm], found {self.vertices_mm!r}")
+        if not np.all(np.isfinite(pts)) or not (math.isfinite(self.radius_mm) and self.radius_mm >= 0):
+            raise InstrumentError(f"zone {self.name!r}: vertices and radius_mm must be finite (radius >= 0)")
+        edge = np.roll(pts, -1, axis=0) - pts
+        nxt = np.roll(edge, -1, axis=0)
+        cross = edge[:, 0] * nxt[:, 1] - edge[:, 1] * nxt[:, 0]
+        if not (np.all(cross > 1e-12) or np.all(cross < -1e-12)):
+            raise InstrumentError(
+                f"zone {self.name!r}: the vertices {self.vertices_mm!r} are not a convex polygon with distinct corners, in order "
+                "around it; a concave zone is given as several convex ones"
+            )
+
+    @property
+    def counterclockwise(self) -> np.ndarray:
+        """The vertices ``(V, 2)`` in counterclockwise order."""
+        pts = np.asarray(self.vertices_mm, dtype=float)
+        area = float(np.sum(pts[:, 0] * np.roll(pts[:, 1], -1) - np.roll(pts[:, 0], -1) * pts[:, 1]))
+        return pts if area > 0 else pts[::-1].copy()
+
+    def edges(self) -> tuple[Capsule, ...]:
+        """The polygon's edges as capsules of its radius, named ``<name>#<k>``."""
+        pts = self.counterclockwise
+        out = []
+        for k in range(len(pts)):
+            (x0, y0), (x1, y1) = pts[k], pts[(k + 1) % len(pts)]
+            out.append(Capsule(f"{self.name}#{k}", self.arm, float(x0), float(x1), self.radius_mm, self.layer, float(y0), float(y1),
+                               zone=self.name))
+        return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -72,6 +141,8 @@ class Instrument:
     tolerance_mm: float
     capsules: tuple[Capsule, ...]
     description: str = ""
+    polygons: tuple[Polygon, ...] = ()
+    interactions: tuple[tuple[str, str], ...] | None = None
     min_base_distance_mm: float | None = None
     sources: dict[str, str] = field(default_factory=dict, compare=False, hash=False)
     planner_defaults: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
@@ -103,9 +174,12 @@ class Instrument:
             raise InstrumentError(f"instrument {self.name!r}: at least one collision capsule is needed")
         if self.min_base_distance_mm is not None and not (math.isfinite(self.min_base_distance_mm) and self.min_base_distance_mm >= 0):
             raise InstrumentError(f"instrument {self.name!r}: min_base_distance_mm must be a finite number >= 0, found {self.min_base_distance_mm}")
+        self._check_zones()
         for capsule in self.capsules:
+            if capsule.zone:
+                continue  # a polygon's edge: the polygon is checked as drawn by the instrument's maker
             arm = self.alpha_arm_mm if capsule.arm == "alpha" else self.beta_arm_mm
-            longest = max(abs(capsule.start_mm), abs(capsule.end_mm))
+            longest = capsule.reach_mm
             if longest > arm + capsule.radius_mm + 1e-9:
                 raise InstrumentError(
                     f"instrument {self.name!r}: capsule {capsule.name!r} reaches {longest:g} mm along the {capsule.arm} arm, beyond the "
@@ -113,6 +187,45 @@ class Instrument:
                 )
         if not (self.within_limits(np.array(self.datum_rad))):
             raise InstrumentError(f"instrument {self.name!r}: datum {np.degrees(self.datum_rad)} deg is outside the joint limits")
+
+    def _check_zones(self) -> None:
+        names = [c.name for c in self.capsules if not c.zone] + [p.name for p in self.polygons]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise InstrumentError(f"instrument {self.name!r}: zone names must be unique, found {', '.join(dup)} more than once")
+        edges = {c.zone for c in self.capsules if c.zone}
+        polygons = {p.name for p in self.polygons}
+        if edges != polygons:
+            raise InstrumentError(f"instrument {self.name!r}: the polygon edges ({sorted(edges)}) and polygons ({sorted(polygons)}) differ")
+        if self.interactions is not None:
+            known = set(names)
+            for a, b in self.interactions:
+                for z in (a, b):
+                    if z not in known:
+                        raise InstrumentError(
+                            f"instrument {self.name!r}: [interactions] names zone {z!r}, which is not a zone of the instrument "
+                            f"({', '.join(sorted(known))})"
+                        )
+
+    @property
+    def zone_names(self) -> list[str]:
+        """Names of the collision zones: every capsule that is not a polygon's edge, then every polygon."""
+        return [c.name for c in self.capsules if not c.zone] + [p.name for p in self.polygons]
+
+    @property
+    def zone_pairs(self) -> tuple[tuple[str, str], ...]:
+        """Ordered zone-name pairs ``(a, b)`` checked between positioners ``i`` (zone ``a``) and
+        ``j`` (zone ``b``): the interaction table both ways round, else every pair of zones on one layer."""
+        if self.interactions is None:
+            layer = {c.zone_name: c.layer for c in self.capsules}
+            names = self.zone_names
+            return tuple((a, b) for a in names for b in names if layer[a] == layer[b])
+        out: list[tuple[str, str]] = []
+        for a, b in self.interactions:
+            for pair in ((a, b), (b, a)):
+                if pair not in out:
+                    out.append(pair)
+        return tuple(out)
 
     # ------------------------------------------------------------------ derived values
     @property
@@ -172,32 +285,40 @@ class Instrument:
         """Largest distance from the base any capsule surface can reach."""
         extents = []
         for capsule in self.capsules:
-            far = max(abs(capsule.start_mm), abs(capsule.end_mm))
             arm_offset = self.alpha_arm_mm if capsule.arm == "beta" else 0.0
-            extents.append(arm_offset + far + capsule.radius_mm)
+            extents.append(arm_offset + capsule.reach_mm + capsule.radius_mm)
         return max(extents)
 
     @property
     def beta_point_extent_mm(self) -> float:
         """Largest distance from the elbow of any capsule segment point on the beta arm."""
-        values = [max(abs(c.start_mm), abs(c.end_mm)) for c in self.capsules if c.arm == "beta"]
+        values = [c.reach_mm for c in self.capsules if c.arm == "beta"]
         return max(values, default=0.0)
 
     @property
     def alpha_point_extent_mm(self) -> float:
         """Largest distance from the base of any capsule segment point (either arm)."""
-        values = [max(abs(c.start_mm), abs(c.end_mm)) for c in self.capsules if c.arm == "alpha"]
+        values = [c.reach_mm for c in self.capsules if c.arm == "alpha"]
         values.append(self.alpha_arm_mm + self.beta_point_extent_mm if any(c.arm == "beta" for c in self.capsules) else 0.0)
         return max(values)
 
     @property
     def capsule_pairs(self) -> tuple[tuple[int, int], ...]:
-        """Index pairs ``(a, b)`` of capsules that can touch: same layer (ordered, both ways)."""
+        """Index pairs ``(a, b)`` of capsules that can touch: capsule ``a`` of one positioner and
+        ``b`` of the other, of zones the interaction table pairs (without one: on the same layer)."""
+        if self.interactions is None:
+            return tuple(
+                (a, b)
+                for a, ca in enumerate(self.capsules)
+                for b, cb in enumerate(self.capsules)
+                if ca.layer == cb.layer
+            )
+        checked = set(self.zone_pairs)
         return tuple(
             (a, b)
             for a, ca in enumerate(self.capsules)
             for b, cb in enumerate(self.capsules)
-            if ca.layer == cb.layer
+            if (ca.zone_name, cb.zone_name) in checked
         )
 
     def within_limits(self, joints: np.ndarray, tol: float = 1e-9) -> np.ndarray:
@@ -205,6 +326,12 @@ class Instrument:
         joints = np.asarray(joints, dtype=float)
         lim = self.limits_rad
         return np.all((joints >= lim[:, 0] - tol) & (joints <= lim[:, 1] + tol), axis=-1)
+
+    @property
+    def beta_convention(self) -> str:
+        """How this instrument's own documents measure beta: ``"extended"`` (0 with the arms in
+        line, fiberplan's convention) or ``"folded"`` (0 with the beta arm folded back: MOONS)."""
+        return str((self.spec or {}).get("beta_convention", "extended"))
 
     def to_dict(self) -> dict[str, Any]:
         """Full description in file units (mm, deg, rpm).

@@ -26,12 +26,16 @@ from fiberplan._keys import check_keys
 from fiberplan._registry import planner_names
 from fiberplan.errors import InstrumentError
 from fiberplan.geometry import min_pair_clearance
-from fiberplan.instrument import _RPM_TO_RAD_S, Capsule, Instrument
+from fiberplan.instrument import _RPM_TO_RAD_S, Capsule, Instrument, Polygon
 
-TOP_KEYS = ("name", "description", "beta_convention", "geometry", "motion", "capsules", "planner_defaults", "sources")
+TOP_KEYS = ("name", "description", "beta_convention", "geometry", "motion", "capsules", "zones", "interactions", "planner_defaults",
+            "sources")
 GEOMETRY_KEYS = ("pitch_mm", "alpha_arm_mm", "beta_arm_mm", "min_base_distance_mm")
 MOTION_KEYS = ("alpha_speed_rpm", "beta_speed_rpm", "alpha_limits_deg", "beta_limits_deg", "datum_deg", "tolerance_mm")
 CAPSULE_KEYS = ("name", "arm", "start_mm", "end_mm", "radius_mm", "layer")
+ZONE_KEYS = ("name", "arm", "shape", "vertices_mm", "from_mm", "to_mm", "width_mm", "offset_mm", "radius_mm", "layer")
+ZONE_SHAPES = ("polygon", "rectangle")
+INTERACTION_KEYS = ("pairs",)
 BETA_CONVENTIONS = ("extended", "folded")
 
 
@@ -156,6 +160,67 @@ def _pair(table: dict[str, Any], key: str, where: str) -> tuple[float, float]:
     return first, second
 
 
+def _zones(raw: Any, origin: str) -> tuple[Polygon, ...]:
+    """The ``[[zones]]`` list: convex polygons in an arm's frame, given by their vertices or as
+    a rectangle along the arm (``from_mm`` to ``to_mm`` from the arm's joint, ``width_mm`` wide,
+    centred ``offset_mm`` to the arm's left)."""
+    if not isinstance(raw, list) or not all(isinstance(z, dict) for z in raw):
+        raise InstrumentError(f"{origin}: [[zones]] must be a list of tables ({', '.join(ZONE_KEYS)})")
+    out = []
+    for k, z in enumerate(raw):
+        where = f"{origin}: zone #{k} ({z.get('name', '?')!r})"
+        check_keys(z, ZONE_KEYS, where, InstrumentError)
+        for key in ("name", "arm", "shape"):
+            if key not in z:
+                raise InstrumentError(f"{where}: missing key {key!r}; see a complete file with: fiberplan instruments moons --toml")
+        shape = z["shape"]
+        if shape not in ZONE_SHAPES:
+            raise InstrumentError(f"{where}: shape must be one of {', '.join(ZONE_SHAPES)}, found {shape!r}")
+        allowed = {"polygon": ("vertices_mm",), "rectangle": ("from_mm", "to_mm", "width_mm", "offset_mm")}[shape]
+        extra = [key for key in ("vertices_mm", "from_mm", "to_mm", "width_mm", "offset_mm") if key in z and key not in allowed]
+        if extra:
+            raise InstrumentError(f"{where}: a {shape} takes {', '.join(allowed)}, not {', '.join(extra)}")
+        if shape == "polygon":
+            verts = z.get("vertices_mm")
+            if not isinstance(verts, list) or not all(isinstance(v, list) and len(v) == 2 for v in verts):
+                raise InstrumentError(f"{where}: vertices_mm must be a list of [x_mm, y_mm] pairs, found {verts!r}")
+            vertices = tuple((_number({"x": v[0]}, "x", where), _number({"y": v[1]}, "y", where)) for v in verts)
+        else:
+            x0, x1 = _number(z, "from_mm", where), _number(z, "to_mm", where)
+            half = 0.5 * _number(z, "width_mm", where)
+            y = _number(z, "offset_mm", where) if "offset_mm" in z else 0.0
+            if not (x1 > x0 and half > 0):
+                raise InstrumentError(f"{where}: a rectangle needs to_mm > from_mm and width_mm > 0")
+            vertices = ((x0, y - half), (x1, y - half), (x1, y + half), (x0, y + half))
+        layer = z.get("layer", 0)
+        if isinstance(layer, bool) or not isinstance(layer, int):
+            raise InstrumentError(f"{where}: layer must be an integer, found {layer!r}")
+        radius = _number(z, "radius_mm", where) if "radius_mm" in z else 0.0
+        try:
+            out.append(Polygon(str(z["name"]), z["arm"], vertices, radius, layer))
+        except InstrumentError as e:
+            raise InstrumentError(f"{where}: {e}") from e
+    return tuple(out)
+
+
+def _interactions(data: dict[str, Any], origin: str) -> tuple[tuple[str, str], ...] | None:
+    """The ``[interactions]`` table: ``pairs = [[zone, zone], ...]``, each checked between any two
+    positioners both ways round (zone ``a`` of one against zone ``b`` of the other, and the
+    reverse); a zone pair not listed is never checked. Without the table, zones on the same
+    ``layer`` are checked against each other."""
+    if "interactions" not in data:
+        return None
+    table = data["interactions"]
+    where = f"{origin}: [interactions]"
+    if not isinstance(table, dict):
+        raise InstrumentError(f"{where} must be a table with pairs = [[zone, zone], ...]")
+    check_keys(table, INTERACTION_KEYS, where, InstrumentError)
+    pairs = table.get("pairs")
+    if not isinstance(pairs, list) or not all(isinstance(p, list) and len(p) == 2 and all(isinstance(z, str) for z in p) for p in pairs):
+        raise InstrumentError(f"{where}: pairs must be a list of [zone name, zone name], found {pairs!r}")
+    return tuple((a, b) for a, b in pairs)
+
+
 def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> Instrument:
     """Build an :class:`Instrument` from the file layout (mm, deg, rpm).
 
@@ -181,7 +246,7 @@ def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> In
     beta_limits = tuple(math.radians(v) + beta_shift for v in _pair(motion, "beta_limits_deg", where_m))
     datum_deg = _pair(motion, "datum_deg", where_m)
     datum = (math.radians(datum_deg[0]), math.radians(datum_deg[1]) + beta_shift)
-    raw_capsules = data.get("capsules")
+    raw_capsules = data.get("capsules", [] if "zones" in data else None)
     if not isinstance(raw_capsules, list) or not all(isinstance(c, dict) for c in raw_capsules):
         raise InstrumentError(f"{origin}: [[capsules]] must be a list of tables (name, arm, start_mm, end_mm, radius_mm, layer)")
     capsules = []
@@ -199,6 +264,8 @@ def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> In
                 radius_mm=_number(c, "radius_mm", where_c), layer=layer,
             )
         )
+    polygons = _zones(data.get("zones", []), origin)
+    interactions = _interactions(data, origin)
     defaults = data.get("planner_defaults", {})
     if not isinstance(defaults, dict):
         raise InstrumentError(f"{origin}: [planner_defaults] must be a table")
@@ -231,7 +298,9 @@ def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> In
             beta_limits_rad=(beta_limits[0], beta_limits[1]),
             datum_rad=datum,
             tolerance_mm=_number(motion, "tolerance_mm", where_m),
-            capsules=tuple(capsules),
+            capsules=tuple(capsules) + tuple(edge for poly in polygons for edge in poly.edges()),
+            polygons=polygons,
+            interactions=interactions,
             sources={str(k): str(v) for k, v in sources.items()},
             planner_defaults=copy.deepcopy(dict(defaults)),
             spec=copy.deepcopy(data),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -86,6 +87,7 @@ class _Points:
     arm: np.ndarray
     dist: np.ndarray
     capsule: np.ndarray
+    lateral: np.ndarray  # offset to the arm's left (zero for a capsule on the arm's axis)
     radius: np.ndarray
     sagitta: np.ndarray
     chord_alpha: np.ndarray
@@ -104,13 +106,17 @@ def _capsule_points(instrument: Instrument) -> _Points:
     \le (l_1 + 2 s) \Delta a^2 + 2 s \Delta b^2`` (smooth), used by the NLP.
     """
     wa, wb = instrument.alpha_speed_rad_s, instrument.beta_speed_rad_s
-    arm, dist, capsule, radius, sag, chord_a, chord_b = [], [], [], [], [], [], []
+    arm, dist, lateral, capsule, radius, sag, chord_a, chord_b = [], [], [], [], [], [], [], []
     for c_idx, cap in enumerate(instrument.capsules):
-        ends = [cap.start_mm] if cap.start_mm == cap.end_mm else [cap.start_mm, cap.end_mm]
-        for s in ends:
+        ends = [(cap.start_mm, cap.start_y_mm)]
+        if (cap.start_mm, cap.start_y_mm) != (cap.end_mm, cap.end_y_mm):
+            ends.append((cap.end_mm, cap.end_y_mm))
+        for x, y in ends:
             is_beta = cap.arm == "beta"
             arm.append(1 if is_beta else 0)
-            dist.append(s)
+            dist.append(x)
+            lateral.append(y)
+            s = x if y == 0.0 else math.hypot(x, y)  # distance from the joint, for the curvature bounds
             capsule.append(c_idx)
             radius.append(cap.radius_mm)
             curvature = instrument.alpha_arm_mm * wa**2 + abs(s) * (wa + wb) ** 2 if is_beta else abs(s) * wa**2
@@ -118,8 +124,8 @@ def _capsule_points(instrument: Instrument) -> _Points:
             chord_a.append((instrument.alpha_arm_mm + 2 * abs(s)) / 8.0 if is_beta else abs(s) / 8.0)
             chord_b.append(2 * abs(s) / 8.0 if is_beta else 0.0)
     return _Points(
-        np.array(arm), np.array(dist, dtype=float), np.array(capsule), np.array(radius, dtype=float), np.array(sag, dtype=float),
-        np.array(chord_a), np.array(chord_b),
+        np.array(arm), np.array(dist, dtype=float), np.array(capsule), np.array(lateral, dtype=float),
+        np.array(radius, dtype=float), np.array(sag, dtype=float), np.array(chord_a), np.array(chord_b),
     )
 
 
@@ -132,7 +138,10 @@ def _point_positions(instrument: Instrument, pts: _Points, base_xy: np.ndarray, 
     base = np.broadcast_to(base_xy, (*a.shape, 2))[..., None, :]
     elbow = base + instrument.alpha_arm_mm * ua
     is_beta = (pts.arm == 1)[:, None]
-    return np.where(is_beta, elbow + pts.dist[:, None] * uab, base + pts.dist[:, None] * ua)
+    perp_ab = np.concatenate([-uab[..., 1:2], uab[..., 0:1]], axis=-1)
+    perp_a = np.concatenate([-ua[..., 1:2], ua[..., 0:1]], axis=-1)
+    lat = pts.lateral[:, None]
+    return np.where(is_beta, elbow + pts.dist[:, None] * uab + lat * perp_ab, base + pts.dist[:, None] * ua + lat * perp_a)
 
 
 def _motion_bound(instrument: Instrument, joints: np.ndarray) -> np.ndarray:
@@ -244,12 +253,13 @@ def _solve_nlp(problem: _Problem, active: np.ndarray, guess_q: np.ndarray, guess
     pts = problem.points
     px_list, py_list = [], []
     for p in range(len(pts.arm)):
+        x, y = pts.dist[p], pts.lateral[p]
         if pts.arm[p] == 1:
-            px_list.append(ex + pts.dist[p] * cab)
-            py_list.append(ey + pts.dist[p] * sab)
+            px_list.append(ex + x * cab - y * sab)
+            py_list.append(ey + x * sab + y * cab)
         else:
-            px_list.append(bx + pts.dist[p] * ca_)
-            py_list.append(by + pts.dist[p] * sa_)
+            px_list.append(bx + x * ca_ - y * sa_)
+            py_list.append(by + x * sa_ + y * ca_)
     px_all = ca.vertcat(*px_list)
     py_all = ca.vertcat(*py_list)
 

@@ -4,6 +4,7 @@ culling that keeps a step O(N)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -76,16 +77,25 @@ def convergence_condition(
     best: tuple[float, float, float] | None = None
     for a, b in instrument.capsule_pairs:
         d = instrument.capsules[a].radius_mm + instrument.capsules[b].radius_mm
+        if d <= 0.0:
+            continue  # edges of unpadded polygon zones: eq. 5 assumes d > 0 and says nothing of them
         bound = convergence_bound(R, d + envelope_mm, d)
         if best is None or bound < best[0]:
             best = (bound, d + envelope_mm, d)
-    assert best is not None  # an instrument has at least one capsule, so one combination
     ratio = lambda_attract / lambda_repel
+    if best is None:
+        return ConvergenceCheck(ratio=ratio, bound=math.nan, holds=False, R_mm=R, D_mm=math.nan, d_mm=0.0)
     return ConvergenceCheck(ratio=ratio, bound=best[0], holds=ratio < best[0], R_mm=R, D_mm=best[1], d_mm=best[2])
 
 
 # ---------------------------------------------------------------------------------------------
 # Potential gradients
+
+
+def _gap_floor(d: np.ndarray) -> np.ndarray:
+    """Floor of ``r^2 - d^2``: ``1e-4 d^2``, and for zones without a radius (``d = 0``, the
+    sharp edges of polygon zones) ``1e-6 mm^2``, so that the slope stays finite at contact."""
+    return np.where(d > 0.0, _MIN_SEP2_FRACTION * d * d, 1e-6)
 
 
 def repulsion_slope(r: np.ndarray, d: np.ndarray, D: np.ndarray, potential: PotentialKind = "reference") -> np.ndarray:
@@ -97,9 +107,9 @@ def repulsion_slope(r: np.ndarray, d: np.ndarray, D: np.ndarray, potential: Pote
         \\phi'_{smooth}(r) = -\\frac{2 r (D^2 - r^2) (D^2 + r^2 - 2 d^2)}{(r^2 - d^2)^2 (D^2 - d^2)}
         \\qquad (d < r < D)
 
-    ``r^2 - d^2`` is floored at ``1e-4 d^2`` so that the slope stays finite at contact.
+    ``r^2 - d^2`` is floored (:func:`_gap_floor`) so that the slope stays finite at contact.
     """
-    gap = np.maximum(r * r - d * d, _MIN_SEP2_FRACTION * d * d)
+    gap = np.maximum(r * r - d * d, _gap_floor(d))
     span = D * D - d * d
     if potential == "reference":
         slope = -2.0 * r * span / (gap * gap)
@@ -118,7 +128,7 @@ def repulsion_potential(r: np.ndarray, d: np.ndarray, D: np.ndarray, potential: 
         \\phi_{smooth} = \\frac{(D^2 - r^2)^2}{(r^2 - d^2)(D^2 - d^2)} \\qquad (d < r < D),
         \\text{ zero for } r \\ge D.
     """
-    gap = np.maximum(r * r - d * d, _MIN_SEP2_FRACTION * d * d)
+    gap = np.maximum(r * r - d * d, _gap_floor(d))
     room = D * D - r * r
     value = room / gap if potential == "reference" else room * room / (gap * np.maximum(D * D - d * d, 1e-300))
     return np.where(r < D, value, 0.0)

@@ -119,6 +119,8 @@ class DnfSettings(RouteSettings):
         rho = instrument.reach_max_mm
         lam1 = (_DESI_RHO_MM**2 * _DESI_DT_S) / (rho**2 * dt)
         radii = [a.radius_mm + b.radius_mm for a, b in ((instrument.capsules[i], instrument.capsules[j]) for i, j in instrument.capsule_pairs)]
+        # Polygon zones (sharp, unpadded edges) have no radius: the cap stands for them.
+        radii = [r for r in radii if r > 0.0] or [_ENVELOPE_CAP_MM]
         half_turn = instrument.full_turn_s / 2.0
         defaults = cls(
             dt_s=dt,

@@ -1,0 +1,266 @@
+"""Polygon zones: clearances for instruments whose collision model has convex polygons
+(``formulations/collision_geometry.md``, Zones beyond capsules).
+
+An instrument with polygon zones (MOONS' own model: rectangles and triangles padded by a safety
+distance, at several heights, with an interaction table) stores each polygon as its edges,
+capsules of the polygon's radius (``Instrument.capsules``, ``zone`` naming the polygon), and
+``Instrument.capsule_pairs`` lists the edge pairs of the zone pairs the table checks. Two zones
+are then separated by the smallest edge-pair distance minus their radii, unless one lies wholly
+inside a polygon, which no edge distance sees: that is checked here, and such a pair gets minus
+the depth of the deepest point inside (minus the radii).
+
+Many zones make many edge pairs (MOONS: 27 edges, 134 checked pairs, against 4 for the capsule
+model), most of them far apart. So every zone pair is first bounded from below by the discs
+enclosing each zone; an edge pair is computed exactly only where that bound is below
+:data:`EXACT_BELOW_MM`, and elsewhere the bound stands for it (a lower bound, so a caller
+comparing clearances with a smaller threshold decides as with exact values). Instruments made
+of capsules only never come here: their path (``fiberplan.geometry``) is unchanged.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from fiberplan.geometry import _EPS, PairClearance, _perp, capsule_segments, capsule_tables, segment_distance
+from fiberplan.instrument import Instrument
+
+EXACT_BELOW_MM = 3.0
+"""Zone pairs whose enclosing discs leave more clearance than this are given that lower bound
+instead of exact edge distances. Above every threshold the planners' defaults and the verifier
+compare clearances with on MOONS (the mpc's conflict radius 2.79 mm, its margins under 1 mm, the
+dnf's envelope 2 mm, the verifier's 2 mm); a larger threshold set by a user then meets lower
+bounds, which only makes the planner more cautious."""
+
+
+@dataclass(frozen=True)
+class _ZonePair:
+    """One ordered zone pair ``(a of i, b of j)``: its combos (indices into ``capsule_pairs``),
+    their capsule rows, radii sums, and what the containment check needs."""
+
+    combos: np.ndarray
+    ca: np.ndarray
+    cb: np.ndarray
+    radii: np.ndarray
+    zone_a: int
+    zone_b: int
+    points_a: np.ndarray  # capsule rows whose start (and, for a capsule zone, end) points are zone a's core points
+    ends_a: bool
+    points_b: np.ndarray
+    ends_b: bool
+    poly_a: bool
+    poly_b: bool
+    radius_sum: float
+
+
+@dataclass(frozen=True)
+class _Tables:
+    zone_rows: tuple[np.ndarray, ...]  # per zone: its capsule rows
+    centre_start: np.ndarray  # (C, Z): a zone's disc centre is the mean of its capsules' ends, start ...
+    centre_end: np.ndarray  # ... and end weights (a rigid arm keeps affine combinations)
+    disc_radius: np.ndarray  # (Z,): constant on the rigid arm, padding included
+    pairs: tuple[_ZonePair, ...]
+    n_combos: int
+
+
+@functools.lru_cache(maxsize=32)
+def _tables(instrument: Instrument) -> _Tables:
+    names = instrument.zone_names
+    index = {name: k for k, name in enumerate(names)}
+    caps = instrument.capsules
+    zone_of = np.array([index[c.zone_name] for c in caps])
+    zone_rows = tuple(np.flatnonzero(zone_of == k) for k in range(len(names)))
+    polygon = {p.name for p in instrument.polygons}
+    radius = np.array([caps[int(rows[0])].radius_mm for rows in zone_rows])
+    w_start = np.zeros((len(caps), len(names)))
+    w_end = np.zeros((len(caps), len(names)))
+    disc = np.zeros(len(names))
+    for z, rows in enumerate(zone_rows):
+        w_start[rows, z] = w_end[rows, z] = 0.5 / len(rows)
+        pts = np.array([(caps[r].start_mm, caps[r].start_y_mm) for r in rows] + [(caps[r].end_mm, caps[r].end_y_mm) for r in rows])
+        disc[z] = float(np.linalg.norm(pts - pts.mean(axis=0), axis=1).max()) + radius[z] + 1e-9
+    _, _, _, combos, combo_radii = capsule_tables(instrument)
+    pairs = []
+    for a, b in instrument.zone_pairs:
+        za, zb = index[a], index[b]
+        mine = np.flatnonzero((zone_of[combos[:, 0]] == za) & (zone_of[combos[:, 1]] == zb))
+        pairs.append(_ZonePair(
+            combos=mine, ca=combos[mine, 0], cb=combos[mine, 1], radii=combo_radii[mine], zone_a=za, zone_b=zb,
+            points_a=zone_rows[za], ends_a=a not in polygon, points_b=zone_rows[zb], ends_b=b not in polygon,
+            poly_a=a in polygon, poly_b=b in polygon, radius_sum=float(radius[za] + radius[zb]),
+        ))
+    return _Tables(zone_rows, w_start, w_end, disc, tuple(p for p in pairs if len(p.combos)), len(combos))
+
+
+def _centres(tables: _Tables, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Centres ``(..., Z, 2)`` of the discs enclosing every zone, from its capsules' ends ``(..., C, 2)``."""
+    return np.swapaxes(np.swapaxes(start, -1, -2) @ tables.centre_start + np.swapaxes(end, -1, -2) @ tables.centre_end, -1, -2)
+
+
+def _bound(tables: _Tables, zp: _ZonePair, ci: np.ndarray, cj: np.ndarray) -> np.ndarray:
+    """Lower bound ``(L,)`` of the zone pair's clearance from the enclosing discs."""
+    d = ci[:, zp.zone_a] - cj[:, zp.zone_b]
+    return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) - tables.disc_radius[zp.zone_a] - tables.disc_radius[zp.zone_b]
+
+
+def _exact(zp: _ZonePair, rows: np.ndarray, si: np.ndarray, ei: np.ndarray, sj: np.ndarray, ej: np.ndarray,
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Segment distances, ``s``, ``t`` ``(R, Kz)`` of the zone pair's combos for the rows ``rows``."""
+    r = rows[:, None]
+    return segment_distance(si[r, zp.ca[None, :]], ei[r, zp.ca[None, :]], sj[r, zp.cb[None, :]], ej[r, zp.cb[None, :]])
+
+
+def _depth(zp: _ZonePair, rows: np.ndarray, si: np.ndarray, ei: np.ndarray, sj: np.ndarray, ej: np.ndarray) -> np.ndarray:
+    """How deep a zone lies inside the other, a polygon (> 0), for the rows ``rows``, ``(R,)``."""
+    depth = np.zeros(len(rows))
+    if zp.poly_b:  # zone a of i inside polygon b of j
+        depth = np.maximum(depth, _inside_depth(_core(si[rows], ei[rows], zp.points_a, zp.ends_a), sj[rows][:, zp.points_b]))
+    if zp.poly_a:  # zone b of j inside polygon a of i
+        depth = np.maximum(depth, _inside_depth(_core(sj[rows], ej[rows], zp.points_b, zp.ends_b), si[rows][:, zp.points_a]))
+    return depth
+
+
+def _core(start: np.ndarray, end: np.ndarray, rows: np.ndarray, ends: bool) -> np.ndarray:
+    """A zone's core points ``(L, Q, 2)``: a polygon's vertices (its edges' starts), a capsule's two ends."""
+    return np.concatenate([start[:, rows], end[:, rows]], axis=1) if ends else start[:, rows]
+
+
+def _inside_depth(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """How deep the deepest of points ``(L, Q, 2)`` lies inside the convex counterclockwise
+    polygon ``(L, V, 2)``: its smallest distance to an edge's line, > 0 only inside; ``(L,)``."""
+    edge = np.roll(polygon, -1, axis=1) - polygon
+    length = np.maximum(np.linalg.norm(edge, axis=-1), _EPS)  # (L, V)
+    rel = points[:, :, None, :] - polygon[:, None, :, :]  # (L, Q, V, 2)
+    side = (edge[:, None, :, 0] * rel[..., 1] - edge[:, None, :, 1] * rel[..., 0]) / length[:, None, :]
+    return side.min(axis=-1).max(axis=-1)
+
+
+def clearances(
+    instrument: Instrument, start_i: np.ndarray, end_i: np.ndarray, start_j: np.ndarray, end_j: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Clearances of every checked capsule combination of row-matched positioners ``i`` and ``j``.
+
+    Args:
+        instrument: an instrument with polygon zones.
+        start_i, end_i, start_j, end_j: capsule ends ``(L, C, 2)`` in the focal plane.
+
+    Returns:
+        ``(clearance, distance, s, t, exact)``, each ``(L, K)``: exact values where the zone
+        pair's enclosing discs come within :data:`EXACT_BELOW_MM` (``exact`` true; ``s``, ``t``
+        the closest points' parameters), the discs' lower bound elsewhere (``s = t = 0``); a
+        zone inside a polygon gives ``-(depth + radii)``.
+    """
+    tables = _tables(instrument)
+    n = len(start_i)
+    clear = np.empty((n, tables.n_combos))
+    dist = np.empty((n, tables.n_combos))
+    s = np.zeros((n, tables.n_combos))
+    t = np.zeros((n, tables.n_combos))
+    exact = np.zeros((n, tables.n_combos), dtype=bool)
+    ci, cj = _centres(tables, start_i, end_i), _centres(tables, start_j, end_j)
+    for zp in tables.pairs:
+        bound = _bound(tables, zp, ci, cj)
+        clear[:, zp.combos] = bound[:, None]
+        dist[:, zp.combos] = bound[:, None] + zp.radii
+        near = np.flatnonzero(bound < EXACT_BELOW_MM)
+        if not len(near):
+            continue
+        d, ss, tt = _exact(zp, near, start_i, end_i, start_j, end_j)
+        rows, cols = near[:, None], zp.combos[None, :]
+        clear[rows, cols] = d - zp.radii
+        dist[rows, cols] = d
+        s[rows, cols] = ss
+        t[rows, cols] = tt
+        exact[rows, cols] = True
+        # A zone wholly inside a polygon touches no edge: only possible where the discs overlap.
+        overlap = near[bound[near] <= 0.0]
+        if len(overlap) and (zp.poly_a or zp.poly_b):
+            depth = _depth(zp, overlap, start_i, end_i, start_j, end_j)
+            inside = depth > 0.0
+            if np.any(inside):
+                r = overlap[inside][:, None]
+                clear[r, cols] = np.minimum(clear[r, cols], -(depth[inside] + zp.radius_sum)[:, None])
+    return clear, dist, s, t, exact
+
+
+def _rows(arr: np.ndarray, lead: tuple[int, ...], flat: np.ndarray) -> np.ndarray:
+    """``arr[..., C, 2]``'s rows at the flat indices ``flat`` of the broadcast leading shape ``lead``."""
+    own = arr.shape[:-2]
+    idx = np.unravel_index(flat, lead)
+    offset = len(lead) - len(own)
+    pick = tuple(idx[offset + k] if own[k] > 1 else np.zeros(len(flat), dtype=np.int64) for k in range(len(own)))
+    return arr[pick]
+
+
+def smallest(instrument: Instrument, start_i: np.ndarray, end_i: np.ndarray, start_j: np.ndarray, end_j: np.ndarray) -> np.ndarray:
+    """The smallest clearance over the checked combinations, for capsule ends ``(..., C, 2)``
+    with broadcastable leading axes: ``clearances(...)[0].min(axis=-1)`` without the ``(L, K)``
+    arrays, and with the exact distances taken only for the rows whose discs come near (the
+    planners' searches ask for this over large grids)."""
+    tables = _tables(instrument)
+    lead = np.broadcast_shapes(start_i.shape[:-2], start_j.shape[:-2])
+    out = np.full(int(np.prod(lead)), np.inf)
+    ci, cj = _centres(tables, start_i, end_i), _centres(tables, start_j, end_j)
+    for zp in tables.pairs:
+        d = ci[..., zp.zone_a, :] - cj[..., zp.zone_b, :]
+        bound = (np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])
+                 - tables.disc_radius[zp.zone_a] - tables.disc_radius[zp.zone_b]).reshape(-1)
+        far = bound >= EXACT_BELOW_MM
+        np.minimum(out, np.where(far, bound, np.inf), out=out)
+        near = np.flatnonzero(~far)
+        if not len(near):
+            continue
+        si, ei = _rows(start_i, lead, near), _rows(end_i, lead, near)
+        sj, ej = _rows(start_j, lead, near), _rows(end_j, lead, near)
+        rows = np.arange(len(near))
+        value = (_exact(zp, rows, si, ei, sj, ej)[0] - zp.radii).min(axis=1)
+        overlap = bound[near] <= 0.0
+        if overlap.any() and (zp.poly_a or zp.poly_b):
+            depth = _depth(zp, rows[overlap], si, ei, sj, ej)
+            value[overlap] = np.where(depth > 0.0, np.minimum(value[overlap], -(depth + zp.radius_sum)), value[overlap])
+        out[near] = np.minimum(out[near], value)
+    return out.reshape(lead)
+
+
+def pair_clearance(
+    instrument: Instrument, base_xy: np.ndarray, orient: np.ndarray, joints: np.ndarray, pairs: np.ndarray, *, gradient: bool = False,
+) -> PairClearance:
+    """:func:`fiberplan.geometry.pair_clearance` for an instrument with polygon zones (same
+    arguments and result; far combos hold the discs' lower bound and a zero gradient)."""
+    used, inverse = np.unique(pairs, return_inverse=True)
+    if len(used) < joints.shape[-2]:
+        base_xy, orient, joints = base_xy[used], orient[used], joints[..., used, :]
+        pairs = inverse.reshape(pairs.shape)
+    start, end = capsule_segments(instrument, base_xy, orient, joints)  # (..., N, C, 2)
+    ii, jj = pairs[:, 0], pairs[:, 1]
+    lead = start.shape[:-3]
+    c = start.shape[-2]
+
+    def rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        return a[..., idx, :, :].reshape(-1, c, 2)
+
+    clear, dist, s, t, exact = clearances(instrument, rows(start, ii), rows(end, ii), rows(start, jj), rows(end, jj))
+    shape = (*lead, len(pairs), clear.shape[-1])
+    if not gradient:
+        return PairClearance(clearance=clear.reshape(shape), distance=dist.reshape(shape))
+    if joints.ndim != 2:
+        raise ValueError("gradients are computed for one configuration (joints of shape (N, 2))")
+    on_alpha, _, _, combos, _ = capsule_tables(instrument)
+    ca, cb = combos[:, 0], combos[:, 1]
+    p0, p1 = start[ii][:, ca], end[ii][:, ca]
+    q0, q1 = start[jj][:, cb], end[jj][:, cb]
+    xi = p0 + s[..., None] * (p1 - p0)
+    xj = q0 + t[..., None] * (q1 - q0)
+    normal = (xi - xj) / np.maximum(dist, _EPS)[..., None]
+    normal = np.where(((dist > _EPS) & exact)[..., None], normal, 0.0)
+    elbow = base_xy + instrument.alpha_arm_mm * np.stack([np.cos(joints[:, 0] + orient), np.sin(joints[:, 0] + orient)], axis=-1)
+    on_beta = ~on_alpha
+    grad_i = np.empty((*dist.shape, 2))
+    grad_j = np.empty((*dist.shape, 2))
+    grad_i[..., 0] = np.einsum("pki,pki->pk", normal, _perp(xi - base_xy[ii][:, None, :]))
+    grad_i[..., 1] = np.einsum("pki,pki->pk", normal, _perp(xi - elbow[ii][:, None, :])) * on_beta[ca][None, :]
+    grad_j[..., 0] = -np.einsum("pki,pki->pk", normal, _perp(xj - base_xy[jj][:, None, :]))
+    grad_j[..., 1] = -np.einsum("pki,pki->pk", normal, _perp(xj - elbow[jj][:, None, :])) * on_beta[cb][None, :]
+    return PairClearance(clearance=clear, distance=dist, grad_i=grad_i, grad_j=grad_j)

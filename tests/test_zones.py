@@ -1,0 +1,123 @@
+"""Polygon zones and interaction tables (fiberplan.zones): MOONS' own collision model, exact
+against a brute-force reference, symmetric where its table is, asymmetric where it is not."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import fiberplan as fp
+from fiberplan import zones
+from fiberplan.geometry import capsule_segments, clearance_between, pair_clearance
+from fiberplan.instrument_io import load_instrument
+
+MOONS = load_instrument("moons")
+PITCH = MOONS.pitch_mm
+
+
+def _zone_outlines(inst, base, orient, q, spacing=0.02):
+    """Dense points on every zone's boundary and inside it (brute-force reference), per zone name."""
+    start, end = capsule_segments(inst, base[None], np.array([orient]), q[None])
+    out = {}
+    for k, cap in enumerate(inst.capsules):
+        a, b = start[0, k], end[0, k]
+        n = max(2, int(np.linalg.norm(b - a) / spacing) + 1)
+        pts = a + np.linspace(0, 1, n)[:, None] * (b - a)
+        if cap.radius_mm > 0:  # a disc or capsule: its outline at the radius
+            ang = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+            pts = (pts[:, None, :] + cap.radius_mm * np.stack([np.cos(ang), np.sin(ang)], -1)[None]).reshape(-1, 2)
+        out.setdefault(cap.zone_name, []).append(pts)
+    return {name: np.concatenate(p) for name, p in out.items()}
+
+
+def _brute(inst, bi, qi, bj, qj):
+    """Smallest boundary-to-boundary distance over the checked zone pairs, and whether any pair overlaps."""
+    zi, zj = _zone_outlines(inst, bi, 0.0, qi), _zone_outlines(inst, bj, 0.0, qj)
+    best = np.inf
+    for a, b in inst.zone_pairs:
+        d = np.linalg.norm(zi[a][:, None, :] - zj[b][None, :, :], axis=-1).min()
+        best = min(best, d)
+    return best
+
+
+configs = st.tuples(st.floats(-np.pi, np.pi), st.floats(*MOONS.beta_limits_rad))
+
+
+@settings(max_examples=25, deadline=None)
+@given(qi=configs, qj=configs, angle=st.floats(0, 2 * np.pi), gap=st.floats(0.7, 1.2))
+def test_zone_clearance_matches_a_brute_force_reference_and_is_symmetric(qi, qj, angle, gap):
+    bi = np.zeros(2)
+    bj = gap * PITCH * np.array([np.cos(angle), np.sin(angle)])
+    qi, qj = np.array(qi), np.array(qj)
+    c = clearance_between(MOONS, bi[None], np.zeros(1), qi[None], bj[None], np.zeros(1), qj[None]).min()
+    back = clearance_between(MOONS, bj[None], np.zeros(1), qj[None], bi[None], np.zeros(1), qi[None]).min()
+    assert c == pytest.approx(back, abs=1e-9)  # MOONS' table is symmetric
+    if c >= zones.EXACT_BELOW_MM:
+        return  # a lower bound there: nothing to compare
+    ref = _brute(MOONS, bi, qi, bj, qj)
+    if c > 0:  # separated: the edge distance is the boundary distance (sampling error <= 0.02 mm)
+        assert abs(c - ref) < 0.05
+    else:  # overlapping (or one inside the other): the outlines touch, or one holds the other
+        assert ref < 0.05 or c < 0
+
+
+def test_a_zone_inside_a_polygon_is_a_collision():
+    inst = fp.Instrument(
+        name="nested", pitch_mm=20.0, alpha_arm_mm=5.0, beta_arm_mm=10.0, alpha_speed_rad_s=1.0, beta_speed_rad_s=1.0,
+        alpha_limits_rad=(-np.pi, np.pi), beta_limits_rad=(0.0, 1.9 * np.pi), datum_rad=(0.0, np.pi), tolerance_mm=0.01,
+        capsules=(fp.instrument.Capsule("dot", "beta", 10.0, 10.0, 0.1),
+                  *fp.instrument.Polygon("plate", "beta", ((6.0, -3.0), (14.0, -3.0), (14.0, 3.0), (6.0, 3.0))).edges()),
+        polygons=(fp.instrument.Polygon("plate", "beta", ((6.0, -3.0), (14.0, -3.0), (14.0, 3.0), (6.0, 3.0))),),
+        interactions=(("dot", "plate"),),
+    )
+    # j's dot sits in the middle of i's plate: no edge is near it, yet it is inside.
+    bi, bj = np.zeros((1, 2)), np.array([[0.0, 0.0]])
+    q = np.array([[0.0, 0.0]])
+    c = clearance_between(inst, bi, np.zeros(1), q, bj, np.zeros(1), q)
+    assert c.min() < 0.0
+    # Moved 20 mm away: clear, by the discs' bound or exactly.
+    far = clearance_between(inst, bi, np.zeros(1), q, np.array([[0.0, 40.0]]), np.zeros(1), q)
+    assert far.min() > 0.0
+
+
+def test_interaction_table_is_asymmetric_where_moons_is():
+    # MOONS tests the fibre snag triangle against the other's holder only: two snag triangles
+    # may overlap, a holder inside the other's snag triangle may not.
+    zone_pairs = set(MOONS.zone_pairs)
+    assert ("fibre_snag", "holder") in zone_pairs and ("holder", "fibre_snag") in zone_pairs
+    assert ("fibre_snag", "fibre_snag") not in zone_pairs and ("beta_1", "beta_2") not in zone_pairs
+    assert ("beta_2", "beta_2") in zone_pairs
+
+
+def test_arms_crossing_at_different_heights_are_clear_under_moons_and_collide_as_capsules():
+    # Positioner j's beta arm crosses i's where i carries its lowest zone and j its highest, and
+    # the fibres and metrology zones are far apart: MOONS allows it, the capsule model does not.
+    found = None
+    rng = np.random.default_rng(3)
+    base = np.array([[0.0, 0.0], [PITCH, 0.0]])
+    capsules = load_instrument("moons-capsules")
+    for _ in range(4000):
+        q = np.stack([rng.uniform(-np.pi, np.pi, 2), rng.uniform(*MOONS.beta_limits_rad, 2)], axis=1)
+        faithful = pair_clearance(MOONS, base, np.zeros(2), q, np.array([[0, 1]])).clearance.min()
+        approx = pair_clearance(capsules, base, np.zeros(2), q, np.array([[0, 1]])).clearance.min()
+        if faithful > 0.2 and approx < -1.0:
+            found = q
+            break
+    assert found is not None, "no crossing configuration found"
+    sc = fp.scenario.scenario_from_dict({
+        "format": "fiberplan-scenario", "version": 1, "name": "crossing", "kind": "custom", "seed": 0, "instrument": "moons",
+        "meta": {}, "positioners": [
+            {"id": k, "x_mm": float(base[k, 0]), "y_mm": float(base[k, 1]), "orient_deg": 0.0,
+             "start_deg": [0.0, 0.0], "target": {"alpha_deg": float(np.degrees(found[k, 0])),
+                                                   "beta_deg": float(np.degrees(found[k, 1]))}}
+            for k in range(2)]})
+    assert not sc.infeasible  # the crossing targets are accepted under MOONS' model
+
+
+def test_a_small_plan_under_moons_own_model_verifies_clean():
+    sc = fp.make_scenario("moons", 7, "unfold", 1)
+    result = fp.plan(sc, "mpc")
+    report = fp.verify(sc, result.trajectory)
+    assert report.ok and fp.summarize(result, report)["reached"] == 7
