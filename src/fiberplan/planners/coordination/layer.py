@@ -33,8 +33,13 @@ class _Options:
     attempts: int  # route_attempts
     restarts: float | None  # the sample period if route_restarts, else None
     overlap: bool  # route_overlap
-    floor_mm: float  # the clearance new pairs of overlapped legs keep (the planner's safety margin)
+    floor_mm: float  # the clearance new pairs of overlapped legs and solo moves keep (the planner's safety margin)
     coarse_steps: int  # stride of the search for the overlap
+    dt_s: float  # the planner's control step
+
+    @property
+    def solo(self) -> tuple[float, float]:
+        return self.floor_mm, self.dt_s
 
 
 @dataclasses.dataclass
@@ -64,7 +69,7 @@ def _reversed(joints: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------- strategies
 def _direct(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piece]:
     t0 = time.perf_counter()
-    leg = complete_leg(scenario, plan_leg, opts.attempts, strict=False, restarts=opts.restarts)
+    leg = complete_leg(scenario, plan_leg, opts.attempts, strict=False, restarts=opts.restarts, solo=opts.solo)
     return [_Piece("direct", leg.joints, np.flatnonzero(scenario.has_target).tolist(), leg.runs, time.perf_counter() - t0,
                    first_samples=leg.first_samples)]
 
@@ -74,7 +79,7 @@ def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Pie
     the reversed plan brings every positioner exactly back to its start."""
     t0 = time.perf_counter()
     back = leg_scenario(scenario, scenario.target, scenario.start, "reverse")
-    leg = complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts)
+    leg = complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo)
     if not leg.complete:
         return None
     return [_Piece("reverse (planned from the targets)", _reversed(leg.joints), np.flatnonzero(scenario.has_target).tolist(), leg.runs,
@@ -142,8 +147,8 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     back = leg_scenario(scenario, back_start, hold, "unfold-reversed")
     # The two legs are independent: the second is planned in a forked process meanwhile.
     first, second = both(
-        lambda: complete_leg(fold, plan_leg, opts.attempts, restarts=opts.restarts),
-        lambda: complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts),
+        lambda: complete_leg(fold, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo),
+        lambda: complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo),
     )
     if not (first.complete and second.complete):
         return None
@@ -210,7 +215,7 @@ def _score(scenario: Scenario, traj: Trajectory) -> tuple[int, float]:
 def _options(settings: Any) -> _Options:
     step = max(1, round(0.25 / settings.dt_s))  # the overlap is searched in strides of 0.25 s, then refined
     return _Options(settings.route_attempts, settings.dt_s if settings.route_restarts else None, settings.route_overlap,
-                    float(getattr(settings, "safety_margin_mm", 0.0)), step)
+                    float(getattr(settings, "safety_margin_mm", 0.0)), step, settings.dt_s)
 
 
 def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Options,

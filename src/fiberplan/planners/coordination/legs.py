@@ -19,6 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from fiberplan.geometry import motion_bound, path_clearance, point_extents
+from fiberplan.planners.coordination.solo import solo_moves
 from fiberplan.scenario import TARGET_JOINTS, TARGET_NONE, Scenario, _replace
 from fiberplan.trajectory import PlanResult
 
@@ -68,16 +69,19 @@ def at_targets(scenario: Scenario, joints: np.ndarray) -> np.ndarray:
 
 def complete_leg(
     leg: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None = None, unblock: bool = True, strict: bool = True,
-    restarts: float | None = None,
+    restarts: float | None = None, solo: tuple[float, float] | None = None,
 ) -> Leg:
     """Plan ``leg``, then again from where each attempt stopped, until every positioner sits on
     its target, an attempt brings none closer, or ``time_limit_s`` of motion is used up. When an
     attempt stalls on folded neighbours in the way (a fold whose datum blocks the last ones),
     those neighbours are parked at another alpha, folded (:func:`_parking`), while the blocked
     ones arrive, and come back in the next attempt. A leg complete in one run is then shortened
-    by restarts when ``restarts`` is given: the planner's sample period (s) (:func:`shorten_leg`)."""
+    by restarts when ``restarts`` is given: the planner's sample period (s) (:func:`shorten_leg`).
+    With ``solo = (floor_mm, dt_s)``, positioners the attempts leave short go home one at a time
+    along their own grid paths while everyone else holds (:mod:`.solo`), before the fallback
+    planner and once more at the end."""
     t0 = time.perf_counter()
-    joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict)
+    joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo)
     first = len(joints)
     # Restarts help a leg whose planner brought everyone home in one run, its stragglers late; a
     # leg that needed further attempts has stragglers that restarts leave stuck again (measured
@@ -131,6 +135,7 @@ def shorten_leg(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: floa
 
 def _attempts(
     leg: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None, unblock: bool, strict: bool,
+    solo: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, int, bool]:
     """The attempts of :func:`complete_leg`."""
     if strict and leg.infeasible:  # a leg target that cannot be reached would break the joint between legs
@@ -169,6 +174,19 @@ def _attempts(
             # An attempt that brought no one home is dropped: it only cost time.
             pieces.pop()
             end = current.start
+            if solo is not None:
+                moved = solo_moves(leg, end, *solo)[0]
+                # Kept only if it brought more home than any attempt so far: the next attempt may undo a
+                # yield, and solo moves that bring no one home would alternate with it for ever.
+                if len(moved) > 1 and int(at_targets(leg, moved[-1]).sum()) > done_before:
+                    pieces.append(moved[1:])
+                    end = moved[-1]
+                    if at_targets(leg, end).all():
+                        return np.concatenate(pieces), k, True
+                    done_before = int(at_targets(leg, end).sum())
+                    current = dataclasses.replace(leg, start_deg=np.degrees(end), name=f"{leg.name}:after-solo{k}")
+                    attempts = max(attempts, k + 1)
+                    continue
             parked = _parking(leg, end) if unblock else None
             if parked is None:
                 if fallback_used or not unblock:
@@ -191,6 +209,15 @@ def _attempts(
             unblock = False  # once per leg
         done_before = int(at_targets(leg, end).sum())
         current = dataclasses.replace(leg, start_deg=np.degrees(end), name=f"{leg.name}:attempt{k + 1}")
+    if solo is not None and pieces:
+        # Once more at the end: the last attempt cut at its last arrival, then the ones still short alone.
+        last = pieces[-1] if len(pieces) == 1 else np.concatenate([pieces[-2][-1:], pieces[-1]])
+        cut = _until_last_arrival(leg, last)
+        pieces[-1] = cut if len(pieces) == 1 else cut[1:]
+        moved = solo_moves(leg, cut[-1], *solo)[0]
+        pieces.append(moved[1:])
+        if at_targets(leg, moved[-1]).all():
+            return np.concatenate(pieces), k, True
     return np.concatenate(pieces), k, False
 
 
