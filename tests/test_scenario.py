@@ -13,7 +13,7 @@ from fiberplan.geometry import min_pair_clearance
 from fiberplan.scenario import load_scenario, scenario_from_dict
 
 
-@pytest.mark.parametrize("instrument", ["desi", "moons", "sdss"])
+@pytest.mark.parametrize("instrument", ["desi", "moons-capsules", "sdss"])
 @pytest.mark.parametrize("kind", SCENARIO_KINDS)
 def test_generated_scenarios_are_valid_and_collision_free(instrument, kind):
     sc = make_scenario(instrument, 61, kind, 7)
@@ -28,7 +28,7 @@ def test_generated_scenarios_are_valid_and_collision_free(instrument, kind):
 
 
 def test_same_seed_same_scenario_other_seed_other():
-    a, b, c = (make_scenario("moons", 19, "random", s) for s in (4, 4, 5))
+    a, b, c = (make_scenario("moons-capsules", 19, "random", s) for s in (4, 4, 5))
     assert np.array_equal(a.start_deg, b.start_deg) and np.array_equal(a.target_values, b.target_values)
     assert not np.array_equal(a.target_values, c.target_values)
 
@@ -59,7 +59,7 @@ def test_random_targets_fill_the_patrol_disc_uniformly():
     assert abs(np.mean(r < 1 / np.sqrt(2)) - 0.5) < 0.05
 
 
-@pytest.mark.parametrize("instrument", ["desi", "moons"])
+@pytest.mark.parametrize("instrument", ["desi", "moons-capsules"])
 def test_file_round_trip_is_exact(tmp_path, instrument):
     sc = make_scenario(instrument, 37, "random", 11)
     path = sc.save(tmp_path / "s.json")
@@ -85,7 +85,7 @@ def test_custom_instrument_round_trips(tmp_path):
 
 
 def test_xy_target_takes_the_faster_parity():
-    sc = make_scenario("moons", 1, "random", 2)
+    sc = make_scenario("moons-capsules", 1, "random", 2)
     data = sc.to_dict()
     xy = sc.target_xy[0]
     data["positioners"][0]["target"] = {"x_mm": float(xy[0]), "y_mm": float(xy[1])}
@@ -101,7 +101,7 @@ def test_xy_target_takes_the_faster_parity():
 def test_free_parities_are_untangled_when_the_faster_goals_collide():
     # On MOONS the faster parity of each x/y target, chosen alone, often collides with a
     # neighbour's goal; fiberplan flips free parities until the goal is collision-free.
-    sc = make_scenario("moons", 19, "random", 2)
+    sc = make_scenario("moons-capsules", 19, "random", 2)
     data = sc.to_dict()
     for row, xy in zip(data["positioners"], sc.target_xy, strict=True):
         row["target"] = {"x_mm": float(xy[0]), "y_mm": float(xy[1])}
@@ -241,3 +241,44 @@ def test_wrong_format_marker(scenario_dict):
 def test_unknown_kind():
     with pytest.raises(ScenarioError, match="unknown scenario kind 'spiral'"):
         make_scenario("desi", 7, "spiral", 0)
+
+
+def _moons_file(version: int, start_beta: float, **extra):
+    return {"format": "fiberplan-scenario", "version": version, "instrument": "moons", **extra, "positioners": [
+        {"id": 0, "x_mm": 0.0, "y_mm": 0.0, "start_deg": [0.0, start_beta], "target": {"alpha_deg": 10.0, "beta_deg": 20.0}},
+        {"id": 1, "x_mm": 25.0, "y_mm": 0.0, "start_deg": [0.0, start_beta], "target": {"x_mm": 36.0, "y_mm": 5.0, "parity": "L"}}]}
+
+
+def test_scenario_angles_default_to_the_instruments_convention():
+    # MOONS measures beta from the folded arm: its datum [0, 0] is the folded arm, not stretched out.
+    sc = scenario_from_dict(_moons_file(2, 0.0))
+    assert sc.angle_convention == "folded"
+    assert sc.start_deg.tolist() == [[0.0, 180.0], [0.0, 180.0]]
+    assert sc.target_values[0].tolist() == [10.0, 200.0] and sc.target_parity[1] == -1  # "L"
+    # Stated explicitly, the file's own convention wins; a version 1 file (before the key) is extended.
+    assert scenario_from_dict(_moons_file(2, 180.0, beta_convention="extended")).start_deg[0, 1] == 180.0
+    assert scenario_from_dict(_moons_file(1, 180.0)).start_deg[0, 1] == 180.0
+    with pytest.raises(ScenarioError, match="'beta_convention' must be 'extended' or 'folded'"):
+        scenario_from_dict(_moons_file(2, 0.0, beta_convention="bent"))
+
+
+def test_angle_messages_use_the_files_convention_rounded():
+    with pytest.raises(ScenarioError) as info:
+        scenario_from_dict(_moons_file(2, 160.0))
+    text = str(info.value)
+    # The user wrote 160 from the folded arm; the stop is 150 from the folded arm (330 extended).
+    assert "start joints [0, 160] deg (beta from the folded arm)" in text and "beta in [-180, 150] deg" in text
+    assert "330.0000" not in text
+    data = _moons_file(2, 0.0)
+    data["positioners"][1]["target"]["parity"] = "X"
+    with pytest.raises(ScenarioError, match="parity must be 1 or 'R', -1 or 'L'"):
+        scenario_from_dict(data)
+
+
+def test_scenario_files_state_their_convention_and_round_trip_bit_identical(tmp_path):
+    sc = scenario_from_dict(_moons_file(2, 0.0))
+    data = sc.to_dict()
+    assert data["version"] == 2 and data["beta_convention"] == "extended"
+    again = load_scenario(sc.save(tmp_path / "s.json"))
+    np.testing.assert_array_equal(again.start_deg, sc.start_deg)
+    np.testing.assert_array_equal(again.target_values, sc.target_values)

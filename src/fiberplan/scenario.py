@@ -9,9 +9,10 @@ arrays planners use are derived from them.
 File format (JSON, one file; documented in the README)::
 
     {
-      "format": "fiberplan-scenario", "version": 1,
+      "format": "fiberplan-scenario", "version": 2,
       "name": "desi-500-random-seed1", "kind": "random", "seed": 1,
       "instrument": "desi",                      # a preset name, or the full instrument table
+      "beta_convention": "extended",             # of the angles below; absent: the instrument's
       "positioners": [
         {"id": 0, "x_mm": 0.0, "y_mm": 0.0, "orient_deg": 0.0,
          "start_deg": [12.5, 140.0],
@@ -21,7 +22,11 @@ File format (JSON, one file; documented in the README)::
       ]
     }
 
-``parity`` is optional (``1``, ``-1``, or absent / ``0`` for "the faster one").
+``parity`` is optional (``1`` or ``"R"``, ``-1`` or ``"L"``, or absent / ``0`` for "the faster
+one"). ``beta_convention`` says how the file's beta angles are measured: ``"extended"`` (0 with the
+arms in line) or ``"folded"`` (0 with the beta arm folded back, as MOONS' documents measure it);
+absent, it is the instrument's (a version 1 file, written before the key existed: extended).
+Scenarios are kept in the extended convention; messages print angles in the file's.
 """
 
 from __future__ import annotations
@@ -44,7 +49,11 @@ from fiberplan.kinematics import best_parity_joints, fiber_positions, inverse_ki
 from fiberplan.layout import neighbour_pairs
 
 FORMAT_NAME = "fiberplan-scenario"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""Version 2 added ``beta_convention`` (default: the instrument's); version 1 files are read as extended."""
+READ_VERSIONS = (1, 2)
+PARITY_NAMES = {"R": 1, "L": -1}
+"""Parity by name: ``R`` = +1 (beta turned counterclockwise from the alpha arm: ``sin(beta) >= 0``), ``L`` = -1."""
 
 TARGET_NONE = 0
 TARGET_JOINTS = 1
@@ -55,10 +64,10 @@ MAX_COORDINATE_MM = 1.0e5
 MAX_SEED = 2**63 - 1
 """Seeds are stored as signed 64-bit integers (HDF5 attributes)."""
 
-SCENARIO_KEYS = ("format", "version", "name", "kind", "seed", "instrument", "meta", "positioners")
+SCENARIO_KEYS = ("format", "version", "name", "kind", "seed", "instrument", "beta_convention", "meta", "positioners")
 POSITIONER_KEYS = ("id", "x_mm", "y_mm", "orient_deg", "start_deg", "target", "locked")
-JOINT_TARGET_KEYS = ("alpha_deg", "beta_deg")
-XY_TARGET_KEYS = ("x_mm", "y_mm", "parity")
+JOINT_TARGET_KEYS = ("alpha_deg", "beta_deg", "priority")
+XY_TARGET_KEYS = ("x_mm", "y_mm", "parity", "priority")
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,6 +90,10 @@ class Scenario:
         meta: free-form, JSON-serialisable.
         locked: ``(N,)`` positioners that cannot move (static obstacles for everyone);
             default none.
+        target_priority: ``(N,)`` 1 first, 2, 3, ...; 0 (default) after every numbered one.
+            Where two targets cannot both be reached, the more important one keeps its target.
+        angle_convention: the beta convention of the user's file (``"extended"`` or
+            ``"folded"``): messages print angles in it. The arrays are always extended.
         validate_collisions: check that the start configuration is collision-free (default);
             the verifier turns it off to check a file against another geometry.
 
@@ -106,6 +119,8 @@ class Scenario:
     instrument_preset: str | None = None
     meta: dict[str, Any] = field(default_factory=dict)
     locked: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    target_priority: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    angle_convention: str = "extended"
     validate_collisions: InitVar[bool] = True
 
     def __post_init__(self, validate_collisions: bool) -> None:
@@ -123,9 +138,10 @@ class Scenario:
             ("target_values", float),
             ("target_parity", np.int64),
             ("locked", bool),
+            ("target_priority", np.int64),
         ):
-            if attr == "locked" and np.size(self.locked) == 0:  # default: none locked
-                object.__setattr__(self, "locked", np.zeros(len(np.atleast_1d(self.ids)), dtype=bool))
+            if attr in ("locked", "target_priority") and np.size(getattr(self, attr)) == 0:  # default: none locked, no priorities
+                object.__setattr__(self, attr, np.zeros(len(np.atleast_1d(self.ids)), dtype=dtype))
             try:
                 value = np.array(getattr(self, attr), dtype=dtype)
             except (TypeError, ValueError, OverflowError) as e:
@@ -218,12 +234,11 @@ class Scenario:
         inst = self.instrument
         reasons: dict[int, str] = {}
         ids = self.ids
-        lim_deg = np.degrees(inst.limits_rad)
         for k in np.flatnonzero(self.wants_target & self.locked):
             reasons[int(k)] = "locked: it cannot move"
         for k in np.flatnonzero((self.target_kind == TARGET_JOINTS) & ~inst.within_limits(goal)):
-            reasons.setdefault(int(k), f"target joints {np.round(self.target_values[k], 4).tolist()} deg are beyond a hard stop "
-                                       f"(alpha {lim_deg[0].tolist()}, beta {lim_deg[1].tolist()} deg)")
+            reasons.setdefault(int(k), f"target joints {self.angles_text(self.target_values[k])} are beyond a hard stop "
+                                       f"({self.limits_text()})")
         for k in np.flatnonzero((self.target_kind == TARGET_XY) & np.isnan(goal).any(axis=1)):
             radius = float(np.hypot(*(self.target_values[k] - self.base_xy[k])))
             lo, hi = inst.reach_min_mm, inst.reach_max_mm
@@ -247,8 +262,11 @@ class Scenario:
             for r in hit.tolist():
                 i, j = int(pairs[r, 0]), int(pairs[r, 1])
                 if moving[i] and moving[j]:
-                    for a, b in ((i, j), (j, i)):
-                        new.setdefault(a, f"target collides with positioner {ids[b]}'s target (overlap {-clearance[r]:.4f} mm)")
+                    rank_i, rank_j = self.priority_rank[i], self.priority_rank[j]
+                    losers = ((i, j), (j, i)) if rank_i == rank_j else (((j, i),) if rank_i < rank_j else ((i, j),))
+                    for a, b in losers:
+                        more = "" if rank_i == rank_j else " of higher priority"
+                        new.setdefault(a, f"target collides with positioner {ids[b]}'s target{more} (overlap {-clearance[r]:.4f} mm)")
                 else:
                     for a, b in ((i, j), (j, i)):
                         if moving[a]:
@@ -260,6 +278,24 @@ class Scenario:
             reasons.update(new)
             goal[list(new)] = self.start[list(new)]
         return dict(sorted(reasons.items()))
+
+    def angles_text(self, alpha_beta_deg: Any) -> str:
+        """``[alpha, beta] deg`` (extended) as the user wrote them: in the file's convention, rounded."""
+        alpha, beta = (float(v) for v in alpha_beta_deg)
+        if self.angle_convention == "folded":
+            beta -= 180.0
+        return f"[{_deg(alpha)}, {_deg(beta)}] deg" + (" (beta from the folded arm)" if self.angle_convention == "folded" else "")
+
+    def limits_text(self) -> str:
+        """The hard stops in the file's convention, rounded: ``alpha in [..], beta in [..] deg``."""
+        (a_lo, a_hi), (b_lo, b_hi) = np.degrees(self.instrument.limits_rad).tolist()
+        shift = 180.0 if self.angle_convention == "folded" else 0.0
+        return f"alpha in [{_deg(a_lo)}, {_deg(a_hi)}], beta in [{_deg(b_lo - shift)}, {_deg(b_hi - shift)}] deg"
+
+    @property
+    def priority_rank(self) -> np.ndarray:
+        """Priority as a rank: smaller goes first; no priority (0) after every numbered one."""
+        return np.where(self.target_priority > 0, self.target_priority, np.iinfo(np.int64).max)
 
     def _untangle_free_parities(self, goal: np.ndarray, free_rows: np.ndarray) -> None:
         """Flip free-parity targets whose faster solution collides with a neighbour's goal.
@@ -336,11 +372,13 @@ class Scenario:
         if len(bad):
             k = bad[0]
             raise ScenarioError(
-                f"positioner {self.ids[k]}: start joints {self.start_deg[k].tolist()} deg are beyond a hard stop; "
-                f"alpha must lie in {lim_deg[0].tolist()} deg and beta in {lim_deg[1].tolist()} deg"
+                f"positioner {self.ids[k]}: start joints {self.angles_text(self.start_deg[k])} are beyond a hard stop "
+                f"({self.limits_text()})"
             )
         if self.locked.shape != (n,):
             raise ScenarioError(f"scenario array locked has shape {self.locked.shape}, expected {(n,)}")
+        if self.target_priority.shape != (n,):
+            raise ScenarioError(f"scenario array target_priority has shape {self.target_priority.shape}, expected {(n,)}")
         if validate_collisions:
             self._validate_collisions(self.start, "start configuration")
 
@@ -397,6 +435,8 @@ class Scenario:
                 target = {"x_mm": float(self.target_values[k, 0]), "y_mm": float(self.target_values[k, 1])}
                 if self.target_parity[k] != 0:
                     target["parity"] = int(self.target_parity[k])
+            if target is not None and self.target_priority[k] != 0:
+                target["priority"] = int(self.target_priority[k])
             positioners.append(
                 {
                     "id": int(self.ids[k]),
@@ -415,6 +455,7 @@ class Scenario:
             "kind": self.kind,
             "seed": self.seed,
             "instrument": self.instrument_preset if self.instrument_preset else self.instrument.to_dict(),
+            "beta_convention": "extended",  # the angles as kept: a round trip is bit-identical
             "meta": self.meta,
             "positioners": positioners,
         }
@@ -433,7 +474,7 @@ class Scenario:
         return _replace(
             self, ids=self.ids[r], base_xy=self.base_xy[r], orient_deg=self.orient_deg[r], start_deg=self.start_deg[r],
             target_kind=self.target_kind[r], target_values=self.target_values[r], target_parity=self.target_parity[r],
-            locked=self.locked[r], name=self.name if name is None else name,
+            locked=self.locked[r], target_priority=self.target_priority[r], name=self.name if name is None else name,
         )
 
     def with_instrument(self, instrument: Instrument, preset: str | None = None) -> Scenario:
@@ -453,7 +494,7 @@ def _replace(scenario: Scenario, **changes: Any) -> Scenario:
         name: getattr(scenario, name)
         for name in (
             "instrument", "ids", "base_xy", "orient_deg", "start_deg", "target_kind", "target_values",
-            "target_parity", "name", "kind", "seed", "instrument_preset", "meta", "locked",
+            "target_parity", "name", "kind", "seed", "instrument_preset", "meta", "locked", "target_priority", "angle_convention",
         )
     }
     fields.update(changes)
@@ -474,8 +515,9 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
     check_keys(data, SCENARIO_KEYS, origin, ScenarioError)
     if data.get("format") != FORMAT_NAME:
         raise ScenarioError(f"{origin}: 'format' must be {FORMAT_NAME!r}, found {data.get('format')!r}")
-    if data.get("version") != FORMAT_VERSION:
-        raise ScenarioError(f"{origin}: unsupported version {data.get('version')!r}; this fiberplan reads version {FORMAT_VERSION}")
+    version = data.get("version")
+    if isinstance(version, bool) or version not in READ_VERSIONS:
+        raise ScenarioError(f"{origin}: unsupported version {version!r}; this fiberplan reads versions {', '.join(map(str, READ_VERSIONS))}")
     raw_instrument = data.get("instrument")
     try:
         if isinstance(raw_instrument, str):
@@ -489,6 +531,10 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
             raise ScenarioError(f"{origin}: 'instrument' must be a preset name or an instrument table")
     except InstrumentError as e:
         raise ScenarioError(f"{origin}: {e}") from e
+    convention = data.get("beta_convention", "extended" if version == 1 else instrument.beta_convention)
+    if convention not in ("extended", "folded"):
+        raise ScenarioError(f"{origin}: 'beta_convention' must be 'extended' or 'folded', found {convention!r}")
+    beta_shift = 180.0 if convention == "folded" else 0.0  # the arrays are extended
     rows = data.get("positioners")
     if not isinstance(rows, list) or not rows:
         raise ScenarioError(f"{origin}: 'positioners' must be a non-empty list")
@@ -501,6 +547,7 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
     values = np.zeros((n, 2))
     parity = np.zeros(n, dtype=np.int64)
     locked = np.zeros(n, dtype=bool)
+    priority = np.zeros(n, dtype=np.int64)
     for k, row in enumerate(rows):
         if not isinstance(row, dict):
             raise ScenarioError(f"{origin}: positioner #{k}: each entry of 'positioners' must be an object")
@@ -513,7 +560,7 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
             start_row = row["start_deg"]
             if not isinstance(start_row, list) or len(start_row) != 2:
                 raise ValueError("start_deg must be a list [alpha_deg, beta_deg]")
-            start[k] = (_as_float(start_row[0]), _as_float(start_row[1]))
+            start[k] = (_as_float(start_row[0]), _as_float(start_row[1]) + beta_shift)
             lock = row.get("locked", False)
             if not isinstance(lock, bool):
                 raise ValueError(f"locked must be true or false, found {lock!r}")
@@ -523,18 +570,25 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
                 kind[k] = TARGET_NONE
             elif not isinstance(target, dict):
                 raise ValueError("target must be an object or null")
-            elif any(key in target for key in JOINT_TARGET_KEYS):
+            elif "alpha_deg" in target or "beta_deg" in target:
                 check_keys(target, JOINT_TARGET_KEYS, f"{origin}: {label}: joint-angle target", ScenarioError)
                 kind[k] = TARGET_JOINTS
-                values[k] = (_as_float(target["alpha_deg"]), _as_float(target["beta_deg"]))
+                values[k] = (_as_float(target["alpha_deg"]), _as_float(target["beta_deg"]) + beta_shift)
             elif "x_mm" in target or "y_mm" in target:
                 check_keys(target, XY_TARGET_KEYS, f"{origin}: {label}: fiber x/y target", ScenarioError)
                 kind[k] = TARGET_XY
                 values[k] = (_as_float(target["x_mm"]), _as_float(target["y_mm"]))
-                parity[k] = _as_int(target.get("parity", 0))
+                named = target.get("parity", 0)
+                if isinstance(named, str) and named.upper() not in PARITY_NAMES:
+                    raise ValueError(f"parity must be 1 or 'R', -1 or 'L', or 0 (the faster one), found {named!r}")
+                parity[k] = PARITY_NAMES[named.upper()] if isinstance(named, str) else _as_int(named)
             else:
                 check_keys(target, (*JOINT_TARGET_KEYS, *XY_TARGET_KEYS), f"{origin}: {label}: target", ScenarioError)
                 raise ValueError("target needs alpha_deg/beta_deg or x_mm/y_mm (or null for no target)")
+            if isinstance(target, dict) and "priority" in target:
+                priority[k] = _as_int(target["priority"])
+                if priority[k] < 1:
+                    raise ValueError(f"target priority must be an integer >= 1 (1 = first), found {target['priority']!r}")
         except KeyError as e:
             raise ScenarioError(f"{origin}: {label}: missing key {e.args[0]!r}") from e
         except (TypeError, ValueError, AttributeError, OverflowError) as e:
@@ -566,9 +620,17 @@ def scenario_from_dict(data: Any, origin: str = "scenario") -> Scenario:
             instrument_preset=preset,
             meta=dict(meta or {}),
             locked=locked,
+            target_priority=priority,
+            angle_convention=convention,
         )
     except ScenarioError as e:
         raise ScenarioError(f"{origin}: {e}") from e
+
+
+def _deg(value: float) -> str:
+    """An angle rounded to 1e-6 deg, without trailing zeros (``330.00000000000006`` -> ``330``)."""
+    text = f"{round(value, 6):.6f}".rstrip("0").rstrip(".")
+    return "0" if text == "-0" else text
 
 
 def _is_preset(name: str) -> bool:

@@ -143,7 +143,8 @@ def _execute(
     unplaced = np.zeros(n, dtype=bool)
     unplaced[schedule.unplaced] = True
     safety = SafetyLayer(scenario, settings.safety_margin_mm)
-    rank = np.lexsort((np.arange(n), -move))  # the schedule's priority: the longest move first
+    # The schedule's priority: the scenario's priorities (none by default), then the longest move first.
+    rank = np.lexsort((np.arange(n), -move, scenario.priority_rank))
     order = np.empty(n, dtype=np.int64)
     order[rank] = np.arange(n)
     first = partial(outranks, rank=order, defer_to=np.full(n, -1))

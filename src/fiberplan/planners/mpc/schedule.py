@@ -196,6 +196,7 @@ class StartScheduler:
         self.delay_steps, self.max_options, self.swap_tries = delay_steps, max_options, swap_tries
         self.l_paths, self.space_time, self.cell_steps, self.repair = l_paths, space_time, cell_steps, repair
         self.first = np.zeros(scenario.n_positioners, dtype=bool) if first is None else np.asarray(first, dtype=bool)
+        self.priority = scenario.priority_rank
         self.inst = scenario.instrument
         n = self.n = scenario.n_positioners
         self.pairs = scenario.pairs
@@ -238,7 +239,8 @@ class StartScheduler:
         """Schedule every positioner (longest move first), then the fallbacks the settings turn on."""
         if self.n == 0 or len(self.pairs) == 0:
             return StartSchedule(self.delay, np.zeros(0, dtype=np.int64), 0, self.corner)
-        for i in np.lexsort((np.arange(self.n), -self.move, ~self.first)).tolist():
+        # Longest move first, after the targets of higher priority (the scenario's, none by default).
+        for i in np.lexsort((np.arange(self.n), -self.move, self.priority, ~self.first)).tolist():
             d, js, options, ok = self._place(i)
             if d is None:
                 if self._swap(i, js, options, ok):
