@@ -75,6 +75,22 @@ def _print_not_reached(summary: dict[str, Any], limit: int = 20) -> None:
         click.echo(f"  ... and {len(why) - limit} more not reached (use --json for all)")
 
 
+def _limit_text(v: Any, convention: str) -> str:
+    """A limit violation in degrees (beta in the scenario file's convention), worst excess first."""
+    import math
+
+    from fiberplan.scenario import _deg
+
+    first = f", first at t = {v.t_first_s:.3f} s" if math.isfinite(v.t_first_s) else ""
+    if v.kind == "speed":
+        return (f"speed violation: positioner {v.positioner_id} {v.joint} at {_deg(math.degrees(abs(v.value)))} deg/s, limit "
+                f"{_deg(math.degrees(v.limit))} deg/s (worst at t = {v.t_s:.3f} s{first})")
+    shift = 180.0 if convention == "folded" and v.joint == "beta" else 0.0
+    value, limit = math.degrees(v.value) - shift, math.degrees(v.limit) - shift
+    return (f"hard-stop violation: positioner {v.positioner_id} {v.joint} at {_deg(value)} deg, {_deg(abs(value - limit))} deg beyond "
+            f"its stop at {_deg(limit)} deg{' (beta from the folded arm)' if shift else ''} (worst at t = {v.t_s:.3f} s{first})")
+
+
 def _warn(messages: Sequence[str]) -> None:
     for message in messages:
         click.echo(f"warning: {message}", err=True)
@@ -287,7 +303,7 @@ def verify(file: Path, as_json: bool, max_events: int, instrument: str | None) -
         if report.n_collisions > max_events:
             click.echo(f"  ... and {report.n_collisions - max_events} more colliding pairs (use --json for all)")
         for v in report.limit_violations[:max_events]:
-            click.echo(f"  {v.kind} violation: positioner {v.positioner_id} {v.joint} at t = {v.t_s:.3f} s: {v.value:.5g} vs limit {v.limit:.5g}")
+            click.echo(f"  {_limit_text(v, run.scenario.angle_convention)}")
         if report.start_mismatch_ids:
             click.echo(f"  trajectory does not start at the scenario start for positioners {report.start_mismatch_ids[:10]}")
         for mismatch in report.file_mismatches:
@@ -338,16 +354,41 @@ def animate(file: Path, out: Path, fps: int, frames: int) -> None:
 @click.option("--radius-mm", type=click.FloatRange(min=0, min_open=True), default=None)
 @click.option("--kind", default="random", show_default=True, help="random, unfold, fold or clustered.")
 @click.option("--seed", default=0, show_default=True, type=SEED)
+@click.option("--paf", "paf_file", type=PATH, default=None, help="Build the scenario from this ESO PAF fibre positioner configuration (MOONS).")
+@click.option("--targets", "targets_file", type=PATH, default=None, help="With --paf: a target list 'id r_mm theta_deg L|R [priority]'.")
 @click.option("--out", type=PATH, required=True, help="Scenario JSON file to write.")
-def scenario(instrument: str, positioners: int, radius_mm: float | None, kind: str, seed: int, out: Path) -> None:
-    """Generate a seeded scenario and write it as JSON."""
-    check_output_path(out, what="--out", suffixes=JSON_SUFFIXES)
-    from fiberplan.generate import make_scenario
+@click.pass_context
+def scenario(
+    ctx: click.Context, instrument: str, positioners: int, radius_mm: float | None, kind: str, seed: int, paf_file: Path | None,
+    targets_file: Path | None, out: Path,
+) -> None:
+    """Generate a seeded scenario, or read an instrument's PAF file and target list, and write it as JSON."""
+    check_output_path(out, what="--out", suffixes=JSON_SUFFIXES, inputs=[paf_file, targets_file])
+    if paf_file is None:
+        if targets_file is not None:
+            raise click.UsageError("--targets needs --paf (the positioners the targets belong to)")
+        from fiberplan.generate import make_scenario
 
-    inst, preset, used = _instrument_arg(instrument)
-    sc = make_scenario(inst, positioners, kind, seed, radius_mm=radius_mm, instrument_preset=preset)
+        inst, preset, used = _instrument_arg(instrument)
+        sc = make_scenario(inst, positioners, kind, seed, radius_mm=radius_mm, instrument_preset=preset)
+        sc.save(out)
+        click.echo(f"wrote {out} ({sc.n_positioners} positioners, {sc.kind}, seed {sc.seed}, instrument {used})")
+        return
+    ignored = _explicit(ctx, "instrument", "positioners", "radius_mm", "kind", "seed")
+    if ignored:
+        raise click.UsageError(f"{', '.join(ignored)} cannot be used with --paf (the PAF file gives the instrument and positioners)")
+    from fiberplan.paf import scenario_dict_from_paf
+    from fiberplan.scenario import scenario_from_dict
+
+    data, warnings = scenario_dict_from_paf(paf_file, targets_file)
+    sc = scenario_from_dict(data, origin=f"PAF file {str(paf_file)!r}")
+    _warn(warnings)
+    if sc.infeasible:
+        _warn([f"{len(sc.infeasible)} target(s) cannot be reached at all (they will hold): "
+               + "; ".join(f"positioner {sc.ids[k]}: {why}" for k, why in list(sc.infeasible.items())[:10])])
     sc.save(out)
-    click.echo(f"wrote {out} ({sc.n_positioners} positioners, {sc.kind}, seed {sc.seed}, instrument {used})")
+    click.echo(f"wrote {out} ({sc.n_positioners} positioners, {int(sc.wants_target.sum())} targets, {int(sc.locked.sum())} locked, "
+               f"from {paf_file}{'' if targets_file is None else ' and ' + str(targets_file)})")
 
 
 @cli.command()
