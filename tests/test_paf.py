@@ -52,7 +52,8 @@ def test_paf_positions_orientations_and_flags():
     assert sc.locked.tolist() == [False, False, True, True]  # LOCK T, HEALTH "BROKEN"
     assert sc.target_priority.tolist() == [1, 2, 0, 0]
     assert sc.infeasible == {2: "locked: it cannot move"}  # positioner 3 was given a target
-    assert any("SLOW1" in w and "not used" in w for w in warnings)  # read, not silently dropped
+    assert sc.instrument.motors.min_speed_rad_s == pytest.approx(np.array([0.73, 0.98]) * 2 * np.pi / 60)  # SLOW1, SLOW2
+    assert warnings == ["positioner 3 locked (INS.POS3.LOCK = T)", 'positioner 4 locked (INS.FIBRE4.HEALTH = "BROKEN")']
 
 
 def test_crossing_arms_at_different_heights_plan_clean_and_locked_ones_never_move():
@@ -106,6 +107,14 @@ def test_target_list_errors_name_line_and_column(tmp_path, line, expected):
     path.write_text(line)
     with pytest.raises(ScenarioError, match=expected.replace("(", r"\(").replace(")", r"\)")):
         read_targets(path)
+
+
+def test_unused_paf_keys_are_listed_not_dropped(tmp_path):
+    path = tmp_path / "extra.paf"
+    path.write_text(PAF.read_text() + "INS.POS.COLOUR 3;\nINS.POS2.NOTE 1;\n")
+    _, warnings = scenario_dict_from_paf(path)
+    assert any(w.startswith("INS.POS.COLOUR (line") and "not used" in w for w in warnings)
+    assert any(w.startswith("INS.POS2.NOTE (line") and "not used" in w for w in warnings)
 
 
 def test_paf_errors_name_line_and_key(tmp_path):

@@ -135,3 +135,50 @@ def test_pruning_keeps_every_sampled_collision(instrument):
     found = {(c.id_i, c.id_j) for c in report.collisions}
     assert sampled <= found
     assert report.min_clearance_mm <= exact.min() + 1e-12
+
+
+def _one_joint(speeds_deg_s, dt=0.1):
+    """A lone MOONS positioner whose alpha turns at the given speeds (deg/s), one command per interval."""
+    sc = make_scenario("moons-capsules", 1, "unfold", 0)
+    steps = np.radians(np.asarray(speeds_deg_s, dtype=float)) * dt
+    joints = np.repeat(sc.start[None], len(steps) + 1, axis=0)
+    joints[1:, 0, 0] += np.cumsum(steps)
+    return sc, Trajectory(np.arange(len(steps) + 1) * dt, joints)
+
+
+def test_motor_limits_are_reported_apart_worst_first():
+    fast = 12.0  # deg/s: inside 4.38 (0.73 rpm) .. 16.68 (2.78 rpm)
+    speeds = [0.0, fast, fast, 1.0, 0.5, fast, -fast, fast, fast * 1.3, 0.0]
+    sc, traj = _one_joint(speeds)
+    report = verify(sc, traj)
+    assert report.ok and report.motors_checked and not report.motors_ok  # safety passes; motor limits do not
+    kinds = {v.kind: v for v in report.motor_violations}
+    assert set(kinds) == {"min_speed", "reversal", "speed_change"}
+    assert kinds["min_speed"].value == pytest.approx(np.radians(0.5)) and kinds["min_speed"].t_first_s == pytest.approx(0.3)
+    assert kinds["reversal"].t_first_s == pytest.approx(0.6)  # the command that turns back (and again at 0.7)
+    assert kinds["reversal"].value == pytest.approx(np.radians(2 * fast))
+    # changes: 12 -> 1 (-92 %, the first), 1 -> 0.5 (-50 %), 0.5 -> 12 (+2300 %, the worst); 12 -> 15.6 (+30 %) is allowed
+    change = kinds["speed_change"]
+    assert change.t_first_s == pytest.approx(0.3) and change.value == pytest.approx(23.0) and change.t_s == pytest.approx(0.5)
+
+
+def test_motor_segment_count_and_unconstrained_instruments():
+    sc, traj = _one_joint([5.0, 6.0, 7.0, 8.0] * 40)  # 160 segments of changing speed, > 128
+    report = verify(sc, traj)
+    assert [v.kind for v in report.motor_violations] == ["segments"] and report.motor_violations[0].value == 160
+    desi = make_scenario("desi", 7, "random", 0)
+    assert not verify(desi, plan(desi, "straight").trajectory).motors_checked  # DESI states no motor limits
+
+
+def test_motor_table_is_read_strictly(tmp_path):
+    from fiberplan.errors import InstrumentError
+    from fiberplan.instrument_io import instrument_text
+
+    text = instrument_text("moons-capsules")
+    for bad, message in (("max_segments = 128", "max_segments must be an integer >= 1"),
+                         ("stop_before_reversing = true", "stop_before_reversing must be true or false"),
+                         ("max_speed_change = 0.4", "max_speed_change must be a number")):
+        path = tmp_path / "m.toml"
+        path.write_text(text.replace(bad, bad.split("=")[0] + '= "x"'))
+        with pytest.raises(InstrumentError, match=message):
+            load_instrument(path)

@@ -91,6 +91,24 @@ def _limit_text(v: Any, convention: str) -> str:
             f"its stop at {_deg(limit)} deg{' (beta from the folded arm)' if shift else ''} (worst at t = {v.t_s:.3f} s{first})")
 
 
+def _motor_text(v: Any) -> str:
+    """A motor-limit violation: positioner, joint, kind, the worst value and when."""
+    import math
+
+    from fiberplan.scenario import _deg
+
+    when = f"worst at t = {v.t_s:.3f} s, first at t = {v.t_first_s:.3f} s"
+    if v.kind == "min_speed":
+        what = f"turns at {_deg(math.degrees(v.value))} deg/s, below its minimum {_deg(math.degrees(v.limit))} deg/s"
+    elif v.kind == "speed_change":
+        what = f"changes speed by {v.value:.0%} between two commands (limit {v.limit:.0%})"
+    elif v.kind == "reversal":
+        what = f"reverses without stopping (a speed jump of {_deg(math.degrees(v.value))} deg/s)"
+    else:
+        what = f"has {int(v.value)} constant-speed segments (limit {int(v.limit)})"
+    return f"positioner {v.positioner_id} {v.joint} {what} ({when})"
+
+
 def _warn(messages: Sequence[str]) -> None:
     for message in messages:
         click.echo(f"warning: {message}", err=True)
@@ -122,7 +140,8 @@ def _parse_settings(pairs: Sequence[str]) -> dict[str, Any]:
 
 _SUMMARY_KEYS = (
     "planner", "instrument", "scenario_kind", "n_positioners", "seed", "targets", "reached", "success_rate", "held",
-    "deadlocked", "unfinished", "failed", "displaced", "infeasible", "locked", "collisions", "limit_violations", "makespan_s", "lower_bound_s",
+    "deadlocked", "unfinished", "failed", "displaced", "infeasible", "locked", "collisions", "limit_violations", "motor_violations",
+    "makespan_s", "lower_bound_s",
     "makespan_over_bound", "plan_wall_s",
 )
 
@@ -260,11 +279,13 @@ def plan(
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @click.option("--max-events", default=20, show_default=True, type=click.IntRange(min=0), help="Events of each kind to list in the table.")
 @click.option("--instrument", default=None, help="Check against this preset or instrument .toml file instead of the file's geometry.")
-def verify(file: Path, as_json: bool, max_events: int, instrument: str | None) -> None:
+@click.option("--motors", is_flag=True, help="Exit with status 1 also when the instrument's motor limits are violated.")
+def verify(file: Path, as_json: bool, max_events: int, instrument: str | None, motors: bool) -> None:
     """Check a trajectory file: finite samples, hard stops, speeds, collisions at and between samples,
-    and the file against itself.
+    and the file against itself; and the instrument's motor limits when it states them (listed
+    apart: a planner's samples are not motor commands).
 
-    Exits with status 1 when anything is violated.
+    Exits with status 1 when anything is violated (motor limits: with --motors).
     """
     from fiberplan.metrics import summarize
     from fiberplan.trajectory import read_run
@@ -304,12 +325,21 @@ def verify(file: Path, as_json: bool, max_events: int, instrument: str | None) -
             click.echo(f"  ... and {report.n_collisions - max_events} more colliding pairs (use --json for all)")
         for v in report.limit_violations[:max_events]:
             click.echo(f"  {_limit_text(v, run.scenario.angle_convention)}")
+        if report.motors_checked:
+            click.echo(f"  motor limits: {len(report.motor_violations)} violation(s) (positioner, joint and kind; "
+                       f"{'they fail the check' if motors else 'reported only; --motors makes them fail the check'})")
+            for v in report.motor_violations[:max_events]:
+                click.echo(f"    {_motor_text(v)}")
+            if len(report.motor_violations) > max_events:
+                click.echo(f"    ... and {len(report.motor_violations) - max_events} more (use --json for all)")
+        else:
+            click.echo("  motor limits: the instrument states none (unconstrained)")
         if report.start_mismatch_ids:
             click.echo(f"  trajectory does not start at the scenario start for positioners {report.start_mismatch_ids[:10]}")
         for mismatch in report.file_mismatches:
             click.echo(f"  file inconsistency: {mismatch}")
     _warn(report.warnings)
-    if not report.ok:
+    if not report.ok or (motors and not report.motors_ok):
         sys.exit(1)
 
 
@@ -410,6 +440,8 @@ def instruments(name: str | None, as_toml: bool) -> None:
         return
     inst, _, used = _instrument_arg(name)
     click.echo(f"# {used}", err=True)
+    if not inst.motors.stated:
+        click.echo("# motor limits: none stated (unconstrained beyond the top speeds); add a [motors] table to state them", err=True)
     click.echo(json.dumps(inst.to_dict(), indent=2))
 
 

@@ -123,6 +123,32 @@ class Polygon:
 
 
 @dataclass(frozen=True)
+class MotorLimits:
+    """What an instrument's motor controllers accept beyond the top speeds; ``None`` (or false)
+    means unconstrained. The verifier reports violations of these separately from the safety
+    checks: a planner's samples are not yet motor commands (that is the profiles' job).
+
+    Attributes:
+        min_speed_rad_s: ``(alpha, beta)`` slowest a moving joint may turn.
+        max_speed_change: largest relative speed change between consecutive commands of a moving
+            joint (0.4: by at most 40 % of the previous speed); starting and stopping are exempt.
+        max_segments: most constant-speed segments per joint in one move.
+        stop_before_reversing: a joint must stop (a zero-speed command) before turning back.
+    """
+
+    min_speed_rad_s: tuple[float, float] | None = None
+    max_speed_change: float | None = None
+    max_segments: int | None = None
+    stop_before_reversing: bool = False
+
+    @property
+    def stated(self) -> bool:
+        """Whether any limit is given."""
+        return (self.min_speed_rad_s is not None or self.max_speed_change is not None or self.max_segments is not None
+                or self.stop_before_reversing)
+
+
+@dataclass(frozen=True)
 class Instrument:
     """Geometry and motion limits shared by every positioner of an instrument.
 
@@ -146,6 +172,7 @@ class Instrument:
     min_base_distance_mm: float | None = None
     sources: dict[str, str] = field(default_factory=dict, compare=False, hash=False)
     planner_defaults: dict[str, Any] = field(default_factory=dict, compare=False, hash=False)
+    motors: MotorLimits = field(default_factory=MotorLimits)
     spec: dict[str, Any] | None = field(default=None, compare=False, hash=False, repr=False)
 
     def __post_init__(self) -> None:

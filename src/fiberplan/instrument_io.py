@@ -26,10 +26,10 @@ from fiberplan._keys import check_keys
 from fiberplan._registry import planner_names
 from fiberplan.errors import InstrumentError
 from fiberplan.geometry import min_pair_clearance
-from fiberplan.instrument import _RPM_TO_RAD_S, Capsule, Instrument, Polygon
+from fiberplan.instrument import _RPM_TO_RAD_S, Capsule, Instrument, MotorLimits, Polygon
 
-TOP_KEYS = ("name", "description", "beta_convention", "geometry", "motion", "capsules", "zones", "interactions", "planner_defaults",
-            "sources")
+TOP_KEYS = ("name", "description", "beta_convention", "geometry", "motion", "motors", "capsules", "zones", "interactions",
+            "planner_defaults", "sources")
 GEOMETRY_KEYS = ("pitch_mm", "alpha_arm_mm", "beta_arm_mm", "min_base_distance_mm")
 MOTION_KEYS = ("alpha_speed_rpm", "beta_speed_rpm", "alpha_limits_deg", "beta_limits_deg", "datum_deg", "tolerance_mm")
 CAPSULE_KEYS = ("name", "arm", "start_mm", "end_mm", "radius_mm", "layer")
@@ -37,6 +37,7 @@ ZONE_KEYS = ("name", "arm", "shape", "vertices_mm", "from_mm", "to_mm", "width_m
 ZONE_SHAPES = ("polygon", "rectangle")
 INTERACTION_KEYS = ("pairs",)
 BETA_CONVENTIONS = ("extended", "folded")
+MOTOR_KEYS = ("min_speed_rpm", "max_speed_change", "max_segments", "stop_before_reversing")
 
 
 def check_instrument(instrument: Instrument) -> None:
@@ -221,6 +222,29 @@ def _interactions(data: dict[str, Any], origin: str) -> tuple[tuple[str, str], .
     return tuple((a, b) for a, b in pairs)
 
 
+def _motors(data: dict[str, Any], origin: str) -> MotorLimits:
+    """The optional ``[motors]`` table: each key optional, absent = unconstrained."""
+    if "motors" not in data:
+        return MotorLimits()
+    table = _table(data, "motors", origin)
+    where = f"{origin}: [motors]"
+    check_keys(table, MOTOR_KEYS, where, InstrumentError)
+    minimum = None
+    if "min_speed_rpm" in table:
+        lo = _pair(table, "min_speed_rpm", where)
+        if min(lo) < 0:
+            raise InstrumentError(f"{where}: min_speed_rpm must be >= 0, found {list(lo)}")
+        minimum = (lo[0] * _RPM_TO_RAD_S, lo[1] * _RPM_TO_RAD_S)
+    change = _number(table, "max_speed_change", where) if "max_speed_change" in table else None
+    segments = table.get("max_segments")
+    if segments is not None and (isinstance(segments, bool) or not isinstance(segments, int) or segments < 1):
+        raise InstrumentError(f"{where}: max_segments must be an integer >= 1, found {segments!r}")
+    reverse = table.get("stop_before_reversing", False)
+    if not isinstance(reverse, bool):
+        raise InstrumentError(f"{where}: stop_before_reversing must be true or false, found {reverse!r}")
+    return MotorLimits(minimum, change, segments, reverse)
+
+
 def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> Instrument:
     """Build an :class:`Instrument` from the file layout (mm, deg, rpm).
 
@@ -304,6 +328,7 @@ def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> In
             sources={str(k): str(v) for k, v in sources.items()},
             planner_defaults=copy.deepcopy(dict(defaults)),
             spec=copy.deepcopy(data),
+            motors=_motors(data, origin),
         )
         check_instrument(instrument)
         return instrument

@@ -122,6 +122,7 @@ def _summarize(result: PlanResult | RunFile, report: VerificationReport | None) 
             {
                 "collisions": report.n_collisions,
                 "limit_violations": len(report.limit_violations),
+                "motor_violations": len(report.motor_violations) if report.motors_checked else None,
                 "verified_ok": report.ok,
                 "min_clearance_mm": report.min_clearance_mm,
             }

@@ -53,13 +53,11 @@ GLOBAL_KEYS = {
     "B1": "metrology zone length", "B2": "gap before the metrology zone", "B3": "fibre-snag triangle length",
     "B4": "safe length of the beta arm", "TB2": "metrology triangle length", "W3": "fibre-snag triangle width",
     "W4": "metrology zone width", "D1": "datum foot length", "D2": "datum foot behind the elbow", "DW": "datum foot width",
-    "WIDTH2": "beta arm width",
+    "WIDTH2": "beta arm width", "SLOW1": "alpha minimum speed (rpm)", "SLOW2": "beta minimum speed (rpm)",
 }
 """The global ``INS.POS.<KEY>`` entries fiberplan reads (all numbers)."""
-KNOWN_BUT_UNUSED = {
-    "SLOW1": "alpha minimum speed: motor limits are not in instrument files yet (issue: motor profiles)",
-    "SLOW2": "beta minimum speed: motor limits are not in instrument files yet (issue: motor profiles)",
-}
+KNOWN_BUT_UNUSED: dict[str, str] = {}
+"""Global keys fiberplan knows and does not use (with the reason), reported in the warnings."""
 _PER_POSITIONER = re.compile(r"^INS\.(POS|FIBRE)(\d+)\.([A-Z0-9_]+)$")
 
 
@@ -170,6 +168,7 @@ def instrument_spec_from_paf(paf: PafFile) -> dict[str, Any]:
     motion["beta_limits_deg"] = [size["LOW2"], size["HIGH2"]]
     motion["datum_deg"] = [size["DEF1"], size["DEF2"]]
     motion["tolerance_mm"] = size["TOLER"] / 1000.0
+    spec.setdefault("motors", {})["min_speed_rpm"] = [size["SLOW1"], size["SLOW2"]]
     spec["capsules"], spec["zones"] = moons_zones(size)
     given = f"PAF file {Path(paf.path).name}"
     sources = spec["sources"]
@@ -177,6 +176,7 @@ def instrument_spec_from_paf(paf: PafFile) -> dict[str, Any]:
                       ("alpha_limits_deg", "LOW1, HIGH1"), ("beta_limits_deg", "LOW2, HIGH2 (from the folded arm)"),
                       ("datum_deg", "DEF1, DEF2"), ("tolerance_mm", "TOLER (microns)")):
         sources[key] = f"{given}: INS.POS.{what}"
+    sources["motors"] = f"{given}: min_speed_rpm from INS.POS.SLOW1, SLOW2; the other motor limits as the moons preset"
     sources["capsules"] = f"{given}: holder radius INS.POS.MINDIST / 2 + INS.POS.SAFETY"
     sources["zones"] = f"{given}: INS.POS.B1 B2 B3 B4 TB2 W3 W4 D1 D2 DW WIDTH2 SAFETY, shapes as fps_shared builds them (fiberplan.paf.moons_zones)"
     for key in sorted(paf.values):

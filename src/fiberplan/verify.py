@@ -76,7 +76,7 @@ class LimitViolation:
     t_s: float
     value: float
     limit: float
-    kind: str  # "hard_stop" or "speed"
+    kind: str  # "hard_stop" or "speed"; motor limits: "min_speed", "speed_change", "reversal", "segments"
     t_first_s: float = float("nan")
 
 
@@ -107,6 +107,8 @@ class VerificationReport:
     start_mismatch_ids: list[int] = field(default_factory=list)
     non_finite: list[NonFiniteRun] = field(default_factory=list)
     file_mismatches: list[str] = field(default_factory=list)
+    motor_violations: list[LimitViolation] = field(default_factory=list)
+    motors_checked: bool = False
     warnings: list[str] = field(default_factory=list)
     min_clearance_mm: float = float("inf")
     probes: int = 0
@@ -115,6 +117,13 @@ class VerificationReport:
     def ok(self) -> bool:
         """No non-finite sample, collision, limit violation or file mismatch; starts at the start."""
         return not (self.collisions or self.limit_violations or self.start_mismatch_ids or self.non_finite or self.file_mismatches)
+
+    @property
+    def motors_ok(self) -> bool:
+        """No violation of the instrument's motor limits (minimum speed, speed change, reversal
+        without a stop, segment count); true when the instrument states none. Not part of
+        :attr:`ok`: a planner's samples are checked for safety, motor commands for these."""
+        return not self.motor_violations
 
     @property
     def n_non_finite_samples(self) -> int:
@@ -140,6 +149,8 @@ class VerificationReport:
             "non_finite_samples": self.n_non_finite_samples,
             "non_finite": [asdict(r) for r in self.non_finite],
             "file_mismatches": self.file_mismatches,
+            "motors_checked": self.motors_checked,
+            "motor_violations": [asdict(v) for v in self.motor_violations],
             "warnings": self.warnings,
             "min_clearance_mm": self.min_clearance_mm,
             "probes": self.probes,
@@ -191,6 +202,7 @@ def _verify(scenario: Scenario, trajectory: Trajectory, fraction: float, time_ch
     mismatch = np.flatnonzero(~np.all(np.abs(joints[0] - scenario.start) <= 1e-7, axis=1))
     report.start_mismatch_ids = [int(ids[k]) for k in mismatch]
     _check_limits(inst, scenario.ids, trajectory, report)
+    _check_motors(inst, scenario.ids, trajectory, report)
     if len(pairs) == 0 or n_t == 0:
         return report
 
@@ -371,6 +383,56 @@ def _check_limits(inst: Instrument, ids: np.ndarray, trajectory: Trajectory, rep
                     LimitViolation(int(ids[i]), joint_name, float(times[worst]), float(speed[worst, i]), float(max_speed), "speed",
                                    float(times[first]))
                 )
+
+
+def _check_motors(inst: Instrument, ids: np.ndarray, trajectory: Trajectory, report: VerificationReport) -> None:
+    """Append violations of the instrument's motor limits: one per positioner, joint and kind, at its worst.
+
+    Each interval between samples is one constant-speed command. A joint is moving where its
+    speed exceeds 1e-9 rad/s. ``min_speed``: a moving joint slower than the minimum (worst: the
+    slowest). ``speed_change``: consecutive moving commands in one direction whose speeds differ
+    by more than ``max_speed_change`` times the first (worst: the largest ratio; starts and
+    stops exempt). ``reversal``: consecutive moving commands in opposite directions (worst: the
+    largest jump). ``segments``: more constant-speed runs than ``max_segments``.
+    """
+    motors = inst.motors
+    report.motors_checked = motors.stated
+    times = trajectory.times
+    if not motors.stated or len(times) < 2:
+        return
+    dt = np.diff(times)[:, None]
+    tol = 1e-9
+    for axis, joint_name in enumerate(("alpha", "beta")):
+        v = np.diff(trajectory.joints[:, :, axis], axis=0) / dt  # (T-1, N)
+        moving = np.abs(v) > tol
+        found: list[tuple[str, np.ndarray, np.ndarray, float, bool]] = []  # kind, mask (K, N), value (K, N), limit, worst is max
+        if motors.min_speed_rad_s is not None:
+            low = motors.min_speed_rad_s[axis]
+            found.append(("min_speed", moving & (np.abs(v) < low * (1 - 1e-9)), np.abs(v), low, False))
+        both = moving[:-1] & moving[1:]
+        jump = np.abs(v[1:] - v[:-1])
+        if motors.stop_before_reversing:
+            found.append(("reversal", both & (v[:-1] * v[1:] < 0), jump, 0.0, True))
+        if motors.max_speed_change is not None:
+            ratio = jump / np.maximum(np.abs(v[:-1]), tol)
+            found.append(("speed_change", both & (v[:-1] * v[1:] > 0) & (ratio > motors.max_speed_change * (1 + 1e-9)),
+                          ratio, motors.max_speed_change, True))
+        for kind, mask, value, limit, worst_is_max in found:
+            offset = 0 if kind == "min_speed" else 1  # a change is at the start of the second command
+            for i in np.flatnonzero(mask.any(axis=0)):
+                first = int(np.argmax(mask[:, i]))
+                pick = np.where(mask[:, i], value[:, i], -np.inf if worst_is_max else np.inf)
+                worst = int(np.argmax(pick) if worst_is_max else np.argmin(pick))
+                report.motor_violations.append(LimitViolation(
+                    int(ids[i]), joint_name, float(times[worst + offset]), float(value[worst, i]), float(limit), kind,
+                    float(times[first + offset])))
+        if motors.max_segments is not None:
+            starts = moving & np.vstack([np.ones((1, v.shape[1]), dtype=bool), ~moving[:-1] | (np.abs(v[1:] - v[:-1]) > tol)])
+            count = starts.sum(axis=0)
+            for i in np.flatnonzero(count > motors.max_segments):
+                k = int(np.flatnonzero(starts[:, i])[motors.max_segments])
+                report.motor_violations.append(LimitViolation(
+                    int(ids[i]), joint_name, float(times[-1]), float(count[i]), float(motors.max_segments), "segments", float(times[k])))
 
 
 _DATASET_CHECKS = (
