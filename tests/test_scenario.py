@@ -197,7 +197,8 @@ def test_bad_parity_value(scenario_dict):
 
 def test_start_beyond_hard_stop(scenario_dict):
     scenario_dict["positioners"][4]["start_deg"] = [0.0, 190.0]
-    with pytest.raises(ScenarioError, match=r"positioner 14: start joints \[0.0, 190.0\] deg are beyond a hard stop"):
+    stops = r"\(alpha in \[-180, 180\], beta in \[0, 180\] deg\)"
+    with pytest.raises(ScenarioError, match=r"positioner 14: start joints \[0, 190\] deg are beyond a hard stop " + stops):
         scenario_from_dict(scenario_dict)
 
 

@@ -373,7 +373,7 @@ def test_instrument_with_scenario_is_an_explicit_override(tmp_path):
     assert summary["instrument"] == "sdss" and summary["instrument_source"].startswith("from the scenario file")
     # The same scenario on another instrument: explicit, said, and validated (sdss targets fit moons' hard stops).
     proc = cli("plan", "--scenario", path, "--instrument", "moons-capsules", "--planner", "straight", "--json")
-    assert proc.returncode == 2 and "on instrument 'moons'" in proc.stderr
+    assert proc.returncode == 2 and "on instrument 'moons-capsules'" in proc.stderr
     assert_refused(cli("plan", "--scenario", path, "-n", 19), "--positioners cannot be used with --scenario")
 
 
@@ -427,7 +427,7 @@ def test_a_folder_named_like_a_preset_does_not_hide_it(tmp_path):
     (tmp_path / "moons-capsules").mkdir()
     proc = cli("plan", "--instrument", "moons-capsules", "-n", 7, "--planner", "straight", "--json", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
-    assert json.loads(proc.stdout)["instrument_source"] == "preset moons"
+    assert json.loads(proc.stdout)["instrument_source"] == "preset moons-capsules"
     table = fp.load_instrument("desi").to_dict()
     table["name"] = "mine"
     import tomli_w
