@@ -367,7 +367,6 @@ class Scenario:
             raise ScenarioError(
                 f"positioner {self.ids[bad[0]]}: parity must be 1, -1 or 0 (either), found {self.target_parity[bad[0]]}"
             )
-        lim_deg = np.degrees(inst.limits_rad)
         bad = np.flatnonzero(~inst.within_limits(self.start))
         if len(bad):
             k = bad[0]
