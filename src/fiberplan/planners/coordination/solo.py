@@ -30,11 +30,13 @@ from fiberplan.scenario import Scenario
 CELL_STEPS = 4
 """Grid cell size, in full-speed control steps per joint."""
 
-MAX_SEARCHES = 120
-"""Grid searches one :func:`solo_moves` call may make (each costs a clearance over the whole
-joint grid). A search whose positioner and neighbours stand where they stood at an earlier one
-is not repeated (its answer is kept), so the limit counts new questions only; it bounds the
-rounds in which nobody can move (measured: a locked MOONS 19 scenario spent minutes there)."""
+MAX_SEARCHES = 24
+"""Grid searches one :func:`solo_moves` call may make. Each costs a clearance over the whole
+joint grid (measured on MOONS 61: 0.7 s with the capsule model, 3.8 s with MOONS' own zones), so
+the limit bounds a call to about 20 s and 90 s there. A search whose positioner and neighbours
+stand where they stood at an earlier one is not repeated (its answer is kept): the limit counts
+new questions only (at 120, a dnf leg of a random MOONS 61 under MOONS' zones spent over 6 minutes
+in solo moves)."""
 
 
 class _Searches:
