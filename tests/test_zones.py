@@ -160,3 +160,22 @@ def test_zone_gradients_equal_finite_differences(qi, qj, angle, wanted):
                 continue  # a kink (parallel edges, a vertex changing sides): no derivative to compare
             numeric = (up - down) / (2 * h)
             assert grad[axis] == pytest.approx(numeric, abs=1e-4, rel=1e-3), (who, axis)
+
+
+def test_solo_free_cells_match_the_exact_clearance_test():
+    # The solo moves' free-cell test takes exact zone distances only where the discs come within
+    # the threshold: the same cells as the exact clearances, on a grid of MOONS' own model.
+    from fiberplan.planners.coordination import solo
+    from fiberplan.planners.mpc.grid import JointGrid, clearance_to
+
+    sc = fp.make_scenario("moons", 19, "random", 2)
+    i = 9
+    cell = sc.instrument.speeds_rad_s * 0.05 * 8
+    lo, shape = JointGrid.through(sc, sc.start[i], cell)
+    grid = JointGrid(sc, i, cell, lo, shape, exact={})
+    others = solo._neighbours(sc, i)
+    for threshold in (0.3, 1.0):
+        exact = clearance_to(sc, i, grid.configs, others, sc.start[others]) >= threshold
+        fast = solo._free(sc, i, grid.configs, others, sc.start[others], threshold)
+        assert 0 < exact.sum() < len(exact)
+        np.testing.assert_array_equal(fast, exact)

@@ -194,11 +194,15 @@ def _rows(arr: np.ndarray, lead: tuple[int, ...], flat: np.ndarray) -> np.ndarra
     return arr[pick]
 
 
-def smallest(instrument: Instrument, start_i: np.ndarray, end_i: np.ndarray, start_j: np.ndarray, end_j: np.ndarray) -> np.ndarray:
+def smallest(instrument: Instrument, start_i: np.ndarray, end_i: np.ndarray, start_j: np.ndarray, end_j: np.ndarray,
+             exact_below: float = EXACT_BELOW_MM) -> np.ndarray:
     """The smallest clearance over the checked combinations, for capsule ends ``(..., C, 2)``
     with broadcastable leading axes: ``clearances(...)[0].min(axis=-1)`` without the ``(L, K)``
     arrays, and with the exact distances taken only for the rows whose discs come near (the
-    planners' searches ask for this over large grids)."""
+    planners' searches ask for this over large grids). A smaller ``exact_below`` (at most
+    :data:`EXACT_BELOW_MM`) takes fewer exact distances: the result then decides ``>= t``
+    exactly only for thresholds ``t <= exact_below``."""
+    exact_below = min(float(exact_below), EXACT_BELOW_MM)
     tables = _tables(instrument)
     lead = np.broadcast_shapes(start_i.shape[:-2], start_j.shape[:-2])
     out = np.full(int(np.prod(lead)), np.inf)
@@ -207,7 +211,7 @@ def smallest(instrument: Instrument, start_i: np.ndarray, end_i: np.ndarray, sta
         d = ci[..., zp.zone_a, :] - cj[..., zp.zone_b, :]
         bound = (np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])
                  - tables.disc_radius[zp.zone_a] - tables.disc_radius[zp.zone_b]).reshape(-1)
-        far = bound >= EXACT_BELOW_MM
+        far = bound >= exact_below
         np.minimum(out, np.where(far, bound, np.inf), out=out)
         near = np.flatnonzero(~far)
         if not len(near):

@@ -23,7 +23,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from fiberplan.geometry import motion_bound, point_extents
+from fiberplan import zones
+from fiberplan.geometry import capsule_segments, motion_bound, point_extents
 from fiberplan.planners.mpc.grid import JointGrid, clearance_to, cross_clearance, densify
 from fiberplan.scenario import Scenario
 
@@ -77,6 +78,20 @@ def _clear(leg: Scenario, i: int, path: np.ndarray, q: np.ndarray, floor_mm: flo
     return not (np.any(c[1:] < floor_mm) or np.any(0.5 * (c[:-1] + c[1:] - bound) <= 0.0))
 
 
+def _free(leg: Scenario, i: int, configs: np.ndarray, others: np.ndarray, q_others: np.ndarray, threshold: float) -> np.ndarray:
+    """Which of ``i``'s ``configs`` ``(K, 2)`` keep ``threshold`` to ``others`` held at ``q_others``:
+    ``clearance_to(...) >= threshold``. With polygon zones the exact distances are taken only
+    where the zones' enclosing discs come within the threshold (the same answer, several times
+    faster: :func:`fiberplan.zones.smallest`)."""
+    inst = leg.instrument
+    if not len(others) or not inst.polygons:
+        return clearance_to(leg, i, configs, others, q_others) >= threshold
+    s_i, e_i = capsule_segments(inst, leg.base_xy[[i]], leg.orient[[i]], configs[:, None, :])
+    s_j, e_j = capsule_segments(inst, leg.base_xy[others], leg.orient[others], q_others)
+    c = zones.smallest(inst, s_i[:, 0, None], e_i[:, 0, None], s_j[None], e_j[None], exact_below=threshold)
+    return np.asarray(c.min(axis=1) >= threshold)
+
+
 def grid_path(
     leg: Scenario, q: np.ndarray, i: int, floor_mm: float, dt_s: float, goal: np.ndarray | None = None,
     ignore: Sequence[int] = (), accept: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -99,7 +114,7 @@ def grid_path(
     # A move between adjacent cells spans at most 1.5 cells per joint (the exact cells sit within half a cell).
     move = float(motion_bound(point_extents(inst), 1.5 * cell))
     others = _neighbours(leg, i, ignore)
-    free = (clearance_to(leg, i, grid.configs, others, q[others]) >= floor_mm + 0.5 * move).reshape(shape)
+    free = _free(leg, i, grid.configs, others, q[others], floor_mm + 0.5 * move).reshape(shape)
     free[sa, sb] = True
     if accept is None:
         target = np.zeros(shape, dtype=bool)
