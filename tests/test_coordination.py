@@ -174,3 +174,22 @@ def test_command_line_unfold_reaches_all_and_names_the_route(tmp_path):
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
     assert summary["reached"] == 61 and summary["collisions"] == 0
+
+
+def test_a_restart_past_a_shortened_leg_is_not_planned():
+    # dnf, MOONS 61 (capsules) unfold seed 2: a restart kept early in a round shortened the leg,
+    # and a later cut lay past its end; planning it with no time left crashed the whole plan
+    # ("need at least one array to concatenate", found by the real-instruments benchmark).
+    sc = fp.make_scenario("moons-capsules", 61, "unfold", 2)
+    result = fp.plan(sc, "dnf")
+    summary = _check(sc, result)
+    assert summary["reached"] == 61
+
+
+def test_attempts_with_no_time_left_stay_at_the_start():
+    from fiberplan.planners.coordination.legs import _attempts
+
+    sc = fp.make_scenario("desi", 7, "random", 0)
+    joints, runs, complete = _attempts(sc, lambda *a, **k: pytest.fail("no planner run expected"), 2, 0.0, False, False)
+    np.testing.assert_array_equal(joints, sc.start[None])
+    assert runs == 1 and not complete

@@ -119,7 +119,9 @@ def shorten_leg(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: floa
         cuts = sorted({int(np.argmax(left <= (1.0 - f) * movers)) for f in RESTART_FRACTIONS})
         kept = 0
         for k in cuts:
-            if k <= tried_up_to or k >= len(base) - 2:
+            # (A restart kept earlier in this round shortened ``best``: a cut at or past its end has no
+            # time left to beat it, and planning it would have nothing to return.)
+            if k <= tried_up_to or k >= len(base) - 2 or k >= len(best) - 1:
                 continue
             restart = dataclasses.replace(leg, start_deg=np.degrees(base[k]), name=f"{leg.name}:restart")
             # A restart that cannot end before the best leg so far is of no use: it stops there.
@@ -218,6 +220,8 @@ def _attempts(
         pieces.append(moved[1:])
         if at_targets(leg, moved[-1]).all():
             return np.concatenate(pieces), k, True
+    if not pieces:  # no attempt was made (no time left): the leg stays where it starts
+        return leg.start[None].copy(), k, False
     return np.concatenate(pieces), k, False
 
 
