@@ -283,3 +283,13 @@ def test_scenario_files_state_their_convention_and_round_trip_bit_identical(tmp_
     again = load_scenario(sc.save(tmp_path / "s.json"))
     np.testing.assert_array_equal(again.start_deg, sc.start_deg)
     np.testing.assert_array_equal(again.target_values, sc.target_values)
+
+
+def test_priorities_and_conventions_are_checked_in_python_too():
+    sc = make_scenario("desi", 7, "random", 0)
+    from fiberplan.scenario import _replace
+
+    with pytest.raises(ScenarioError, match="target priority must be 1, 2"):
+        _replace(sc, target_priority=np.full(7, -1))
+    with pytest.raises(ScenarioError, match="angle_convention must be 'extended' or 'folded'"):
+        _replace(sc, angle_convention="bent")

@@ -378,6 +378,12 @@ class Scenario:
             raise ScenarioError(f"scenario array locked has shape {self.locked.shape}, expected {(n,)}")
         if self.target_priority.shape != (n,):
             raise ScenarioError(f"scenario array target_priority has shape {self.target_priority.shape}, expected {(n,)}")
+        bad = np.flatnonzero(self.target_priority < 0)
+        if len(bad):
+            raise ScenarioError(f"positioner {self.ids[bad[0]]}: target priority must be 1, 2, ... (or 0: none), "
+                                f"found {self.target_priority[bad[0]]}")
+        if self.angle_convention not in ("extended", "folded"):
+            raise ScenarioError(f"scenario angle_convention must be 'extended' or 'folded', found {self.angle_convention!r}")
         if validate_collisions:
             self._validate_collisions(self.start, "start configuration")
 
