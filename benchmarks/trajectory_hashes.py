@@ -20,6 +20,9 @@ import sys
 import time
 from pathlib import Path
 
+# The presets these name changed geometry after the house issue: `moons` is MOONS' own model since
+# 80f3799 (the earlier one is `moons-capsules`), `sdss` the SDSS-V one since edda61d (`sdss-conservative`).
+# Compare two snapshots of the same geometry, or edit the names here.
 SETS = (
     ("desi", 500, "random", range(10)),
     ("moons", 61, "unfold", range(5)),

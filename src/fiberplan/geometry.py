@@ -291,7 +291,7 @@ def pair_clearance(
         from fiberplan import zones
 
         return zones.pair_clearance(instrument, base_xy, orient, joints, pairs, gradient=gradient)
-    on_alpha, _, _, combos, combo_radii = capsule_tables(instrument)
+    _, _, _, combos, combo_radii = capsule_tables(instrument)
     used, inverse = np.unique(pairs, return_inverse=True)
     if len(used) < joints.shape[-2]:  # capsules of the positioners the pairs name, only
         base_xy, orient, joints = base_xy[used], orient[used], joints[..., used, :]
@@ -310,10 +310,25 @@ def pair_clearance(
         return PairClearance(clearance=clearance, distance=dist)
     if joints.ndim != 2:
         raise ValueError("gradients are computed for one configuration (joints of shape (N, 2))")
+    grad_i, grad_j = joint_gradients(instrument, base_xy, orient, joints, pairs, (p0, p1, q0, q1), s, t, dist, dist > _EPS)
+    return PairClearance(clearance=clearance, distance=dist, grad_i=grad_i, grad_j=grad_j)
+
+
+def joint_gradients(
+    instrument: Instrument, base_xy: np.ndarray, orient: np.ndarray, joints: np.ndarray, pairs: np.ndarray,
+    ends: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], s: np.ndarray, t: np.ndarray, dist: np.ndarray, valid: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Gradients ``(P, K, 2)`` of the clearances with respect to ``i``'s and ``j``'s joints (the
+    envelope theorem of :func:`pair_clearance`), from the combos' segment ends ``(p0, p1, q0, q1)``,
+    the closest points' parameters ``s``, ``t`` and distances; zero where ``valid`` is false."""
+    on_alpha, _, _, combos, _ = capsule_tables(instrument)
+    ii, jj = pairs[:, 0], pairs[:, 1]
+    ca, cb = combos[:, 0], combos[:, 1]
+    p0, p1, q0, q1 = ends
     xi = p0 + s[..., None] * (p1 - p0)
     xj = q0 + t[..., None] * (q1 - q0)
     normal = (xi - xj) / np.maximum(dist, _EPS)[..., None]
-    normal = np.where((dist > _EPS)[..., None], normal, 0.0)
+    normal = np.where(valid[..., None], normal, 0.0)
     elbow = base_xy + instrument.alpha_arm_mm * np.stack(
         [np.cos(joints[:, 0] + orient), np.sin(joints[:, 0] + orient)], axis=-1
     )
@@ -324,7 +339,7 @@ def pair_clearance(
     grad_i[..., 1] = np.einsum("pki,pki->pk", normal, _perp(xi - elbow[ii][:, None, :])) * on_beta[ca][None, :]
     grad_j[..., 0] = -np.einsum("pki,pki->pk", normal, _perp(xj - base_xy[jj][:, None, :]))
     grad_j[..., 1] = -np.einsum("pki,pki->pk", normal, _perp(xj - elbow[jj][:, None, :])) * on_beta[cb][None, :]
-    return PairClearance(clearance=clearance, distance=dist, grad_i=grad_i, grad_j=grad_j)
+    return grad_i, grad_j
 
 
 def clearance_between(

@@ -153,10 +153,10 @@ def _number(table: dict[str, Any], key: str, where: str) -> float:
     return out
 
 
-def _pair(table: dict[str, Any], key: str, where: str) -> tuple[float, float]:
+def _pair(table: dict[str, Any], key: str, where: str, unit: str = "degrees") -> tuple[float, float]:
     value = table.get(key)
     if not isinstance(value, list) or len(value) != 2:
-        raise InstrumentError(f"{where}: {key} must be a pair [first, second] in degrees, found {value!r}")
+        raise InstrumentError(f"{where}: {key} must be a pair [first, second] in {unit}, found {value!r}")
     first, second = (_number({key: v}, key, where) for v in value)
     return first, second
 
@@ -231,7 +231,7 @@ def _motors(data: dict[str, Any], origin: str) -> MotorLimits:
     check_keys(table, MOTOR_KEYS, where, InstrumentError)
     minimum = None
     if "min_speed_rpm" in table:
-        lo = _pair(table, "min_speed_rpm", where)
+        lo = _pair(table, "min_speed_rpm", where, unit="rpm (alpha, beta)")
         if min(lo) < 0:
             raise InstrumentError(f"{where}: min_speed_rpm must be >= 0, found {list(lo)}")
         minimum = (lo[0] * _RPM_TO_RAD_S, lo[1] * _RPM_TO_RAD_S)

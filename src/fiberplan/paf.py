@@ -56,8 +56,6 @@ GLOBAL_KEYS = {
     "WIDTH2": "beta arm width", "SLOW1": "alpha minimum speed (rpm)", "SLOW2": "beta minimum speed (rpm)",
 }
 """The global ``INS.POS.<KEY>`` entries fiberplan reads (all numbers)."""
-KNOWN_BUT_UNUSED: dict[str, str] = {}
-"""Global keys fiberplan knows and does not use (with the reason), reported in the warnings."""
 _PER_POSITIONER = re.compile(r"^INS\.(POS|FIBRE)(\d+)\.([A-Z0-9_]+)$")
 
 
@@ -181,8 +179,7 @@ def instrument_spec_from_paf(paf: PafFile) -> dict[str, Any]:
     sources["zones"] = f"{given}: INS.POS.B1 B2 B3 B4 TB2 W3 W4 D1 D2 DW WIDTH2 SAFETY, shapes as fps_shared builds them (fiberplan.paf.moons_zones)"
     for key in sorted(paf.values):
         if key.startswith("INS.POS.") and key[len("INS.POS."):] not in GLOBAL_KEYS:
-            why = KNOWN_BUT_UNUSED.get(key[len("INS.POS."):], "not a key fiberplan reads")
-            paf.warnings.append(f"{key} (line {paf.values[key][1]}) not used: {why}")
+            paf.warnings.append(f"{key} (line {paf.values[key][1]}) not used: not a key fiberplan reads")
     return spec
 
 

@@ -292,7 +292,7 @@ class Scenario:
         shift = 180.0 if self.angle_convention == "folded" else 0.0
         return f"alpha in [{_deg(a_lo)}, {_deg(a_hi)}], beta in [{_deg(b_lo - shift)}, {_deg(b_hi - shift)}] deg"
 
-    @property
+    @cached_property
     def priority_rank(self) -> np.ndarray:
         """Priority as a rank: smaller goes first; no priority (0) after every numbered one."""
         return np.where(self.target_priority > 0, self.target_priority, np.iinfo(np.int64).max)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fiberplan.geometry import _EPS, PairClearance, _perp, capsule_segments, capsule_tables, segment_distance
+from fiberplan.geometry import _EPS, PairClearance, capsule_segments, capsule_tables, joint_gradients, segment_distance
 from fiberplan.instrument import Instrument
 
 EXACT_BELOW_MM = 3.0
@@ -251,20 +251,9 @@ def pair_clearance(
         return PairClearance(clearance=clear.reshape(shape), distance=dist.reshape(shape))
     if joints.ndim != 2:
         raise ValueError("gradients are computed for one configuration (joints of shape (N, 2))")
-    on_alpha, _, _, combos, _ = capsule_tables(instrument)
+    _, _, _, combos, _ = capsule_tables(instrument)
     ca, cb = combos[:, 0], combos[:, 1]
-    p0, p1 = start[ii][:, ca], end[ii][:, ca]
-    q0, q1 = start[jj][:, cb], end[jj][:, cb]
-    xi = p0 + s[..., None] * (p1 - p0)
-    xj = q0 + t[..., None] * (q1 - q0)
-    normal = (xi - xj) / np.maximum(dist, _EPS)[..., None]
-    normal = np.where(((dist > _EPS) & exact)[..., None], normal, 0.0)
-    elbow = base_xy + instrument.alpha_arm_mm * np.stack([np.cos(joints[:, 0] + orient), np.sin(joints[:, 0] + orient)], axis=-1)
-    on_beta = ~on_alpha
-    grad_i = np.empty((*dist.shape, 2))
-    grad_j = np.empty((*dist.shape, 2))
-    grad_i[..., 0] = np.einsum("pki,pki->pk", normal, _perp(xi - base_xy[ii][:, None, :]))
-    grad_i[..., 1] = np.einsum("pki,pki->pk", normal, _perp(xi - elbow[ii][:, None, :])) * on_beta[ca][None, :]
-    grad_j[..., 0] = -np.einsum("pki,pki->pk", normal, _perp(xj - base_xy[jj][:, None, :]))
-    grad_j[..., 1] = -np.einsum("pki,pki->pk", normal, _perp(xj - elbow[jj][:, None, :])) * on_beta[cb][None, :]
+    ends = (start[ii][:, ca], end[ii][:, ca], start[jj][:, cb], end[jj][:, cb])
+    # Far combos hold the discs' bound (``exact`` false): no closest points, a zero gradient.
+    grad_i, grad_j = joint_gradients(instrument, base_xy, orient, joints, pairs, ends, s, t, dist, (dist > _EPS) & exact)
     return PairClearance(clearance=clear, distance=dist, grad_i=grad_i, grad_j=grad_j)
