@@ -3,6 +3,8 @@
 The public API in five names::
 
     from fiberplan import make_scenario, plan, verify, summarize, save_result
+
+and motor profiles of a plan with ``discretise`` (:mod:`fiberplan.profiles`).
 """
 
 from fiberplan.errors import FiberplanError, InstrumentError, PlannerError, ScenarioError, TrajectoryFileError
@@ -11,6 +13,7 @@ from fiberplan.instrument import Instrument
 from fiberplan.instrument_io import load_instrument, preset_names
 from fiberplan.metrics import summarize
 from fiberplan.planners import make_settings, plan, planner_names
+from fiberplan.profiles import JointProfile, Profiles, discretise
 from fiberplan.scenario import Scenario, load_scenario
 from fiberplan.trajectory import PlanResult, Trajectory, load_result, save_result
 from fiberplan.verify import VerificationReport, verify
@@ -20,13 +23,16 @@ __all__ = [
     "FiberplanError",
     "Instrument",
     "InstrumentError",
+    "JointProfile",
     "PlanResult",
     "PlannerError",
+    "Profiles",
     "Scenario",
     "ScenarioError",
     "Trajectory",
     "TrajectoryFileError",
     "VerificationReport",
+    "discretise",
     "load_instrument",
     "load_result",
     "load_scenario",

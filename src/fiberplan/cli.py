@@ -275,30 +275,52 @@ def plan(
 
 
 @cli.command()
-@click.argument("file", type=PATH)
+@click.argument("file", type=PATH, required=False)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @click.option("--max-events", default=20, show_default=True, type=click.IntRange(min=0), help="Events of each kind to list in the table.")
 @click.option("--instrument", default=None, help="Check against this preset or instrument .toml file instead of the file's geometry.")
 @click.option("--motors", is_flag=True, help="Exit with status 1 also when the instrument's motor limits are violated.")
-def verify(file: Path, as_json: bool, max_events: int, instrument: str | None, motors: bool) -> None:
+@click.option("--paths", "paths_file", type=PATH, default=None,
+              help="Check these exported profiles or time-stamped paths (.json, .csv; any planner's) instead of a trajectory file.")
+@click.option("--scenario", "scenario_file", type=PATH, default=None, help="With --paths: the scenario the paths move (needed for CSV).")
+def verify(file: Path | None, as_json: bool, max_events: int, instrument: str | None, motors: bool, paths_file: Path | None,
+           scenario_file: Path | None) -> None:
     """Check a trajectory file: finite samples, hard stops, speeds, collisions at and between samples,
     and the file against itself; and the instrument's motor limits when it states them (listed
-    apart: a planner's samples are not motor commands).
+    apart: a planner's samples are not motor commands). A trajectory file holding motor
+    profiles (``fiberplan profiles``) is also checked to rebuild from them exactly.
+
+    With --paths (and --scenario), checks paths given as motor profiles (JSON, CSV) or
+    time-stamped angle points (JSON) from any planner, rebuilt into a trajectory.
 
     Exits with status 1 when anything is violated (motor limits: with --motors).
     """
+    if (file is None) == (paths_file is None):
+        raise click.UsageError("give a trajectory FILE, or --paths P (with --scenario S.json when P holds no scenario)")
+    if scenario_file is not None and paths_file is None:
+        raise click.UsageError("--scenario goes with --paths (a trajectory file holds its scenario)")
     from fiberplan.metrics import summarize
     from fiberplan.trajectory import read_run
     from fiberplan.verify import check_run_file
     from fiberplan.verify import verify as run_verify
 
     geometry = _instrument_arg(instrument) if instrument is not None else None
-    run = read_run(file)
-    report = run_verify(run.scenario, run.trajectory, instrument=None if geometry is None else geometry[0])
-    mismatches, warnings = check_run_file(run)
-    report.file_mismatches.extend(mismatches)
-    if geometry is None:
-        report.warnings.extend(warnings)
+    if paths_file is not None:
+        file = paths_file
+        run = _paths_run(paths_file, scenario_file)
+        report = run_verify(run.scenario, run.trajectory, instrument=None if geometry is None else geometry[0])
+    elif file is not None:
+        from fiberplan.profile_io import rebuilt_matches
+
+        run = read_run(file)
+        report = run_verify(run.scenario, run.trajectory, instrument=None if geometry is None else geometry[0])
+        mismatches, warnings = check_run_file(run)
+        report.file_mismatches.extend(mismatches)
+        differs = rebuilt_matches(file)
+        if differs is not None:
+            report.file_mismatches.append(differs)
+        if geometry is None:
+            report.warnings.extend(warnings)
     summary = summarize(run, report)
     summary["geometry"] = geometry[2] if geometry is not None else "the file's"
     if as_json:
@@ -341,6 +363,65 @@ def verify(file: Path, as_json: bool, max_events: int, instrument: str | None, m
     _warn(report.warnings)
     if not report.ok or (motors and not report.motors_ok):
         sys.exit(1)
+
+
+def _paths_run(paths_file: Path, scenario_file: Path | None) -> Any:
+    """A plan result from exported profiles or foreign time-stamped paths (outcomes from where they end)."""
+    import numpy as np
+
+    from fiberplan.outcomes import outcome_labels
+    from fiberplan.profile_io import read_paths
+    from fiberplan.scenario import load_scenario
+    from fiberplan.trajectory import PlanResult
+
+    given = None if scenario_file is None else load_scenario(scenario_file)
+    scenario, trajectory, form = read_paths(paths_file, given)
+    outcome = outcome_labels(scenario, trajectory.joints[-1], np.zeros(scenario.n_positioners, dtype=bool))
+    return PlanResult(scenario=scenario, trajectory=trajectory, outcome=outcome, planner=f"paths ({form})", settings={}, stats={}, plan_wall_s=0.0)
+
+
+@cli.command()
+@click.argument("run_file", metavar="RUN", type=PATH)
+@click.option("--out", type=PATH, required=True, help="Where to write: .h5 (trajectory + /profiles), .json (segments) or .csv (one row per segment).")
+@click.option("--format", "form", type=click.Choice(["h5", "json", "csv", "points"]), default=None,
+              help="Export form (default: from the extension); points = time-stamped angle points (JSON).")
+@click.option("--fraction", type=click.FloatRange(0.0, 1.0, min_open=True, max_open=True), default=0.5, show_default=True,
+              help="Share of each pair's planned clearance the profiles may use.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON summary.")
+def profiles(run_file: Path, out: Path, form: str | None, fraction: float, as_json: bool) -> None:
+    """Turn a verified trajectory file into motor profiles: per positioner and joint, a few
+    constant-speed segments within the instrument's motor limits, rebuilt and verified before
+    anything is written.
+
+    Exits with status 2 (nothing written) when the trajectory is not verified or the profiles
+    cannot be; motor-limit violations left are reported (the profiles are still collision-free).
+    """
+    from fiberplan.profile_io import format_of, write_profiles
+    from fiberplan.profiles import discretise
+    from fiberplan.trajectory import load_result
+
+    chosen = format_of(out, form)
+    check_output_path(out, what="--out", inputs=[run_file])
+    result = load_result(run_file)
+    made = discretise(result, fraction=fraction)
+    write_profiles(made, result, out, chosen)
+    summary = made.summary() | {"format": chosen, "out": str(out)}
+    if as_json:
+        click.echo(json.dumps(_json_ready(summary)))
+        return
+    click.echo(f"fiberplan profiles: {run_file} -> {out} ({chosen})")
+    limits = summary.pop("limits")
+    _print_table(summary, ("positioners", "joints_moving", "segments_median", "segments_p95", "segments_max", "makespan_before_s",
+                           "makespan_after_s", "discretise_s", "verified_ok", "collisions", "min_clearance_mm", "motor_violations"))
+    click.echo("  limits applied: " + ", ".join(f"{k} = {v}" for k, v in limits.items() if v is not None and v is not False))
+    unstated = [k for k, v in limits.items() if v is None]
+    if unstated:
+        click.echo(f"  not stated by the instrument (unconstrained): {', '.join(unstated)}")
+    if summary["followed_samples"]:
+        click.echo(f"  positioners following their planned samples (narrower fits failed the verifier): {summary['followed_samples']}")
+    if summary["motor_violations"]:
+        click.echo(f"  {summary['motor_violations']} motor-limit violation(s) left where no allowed speed stays clear; "
+                   f"list them with: fiberplan verify {out if chosen == 'h5' else '--paths ' + str(out)}", err=True)
 
 
 @cli.command()
@@ -442,6 +523,8 @@ def instruments(name: str | None, as_toml: bool) -> None:
     click.echo(f"# {used}", err=True)
     if not inst.motors.stated:
         click.echo("# motor limits: none stated (unconstrained beyond the top speeds); add a [motors] table to state them", err=True)
+    elif inst.motors.unstated():
+        click.echo(f"# motor limits not stated (unconstrained): {', '.join(inst.motors.unstated())}", err=True)
     click.echo(json.dumps(inst.to_dict(), indent=2))
 
 

@@ -43,6 +43,11 @@ class OutputError(FiberplanError, OSError):
     """An output path cannot or must not be written (not a regular file, an input, unwritable)."""
 
 
+class ProfileError(FiberplanError, ValueError):
+    """Motor profiles cannot be made (an unverified trajectory) or read (a malformed profile or
+    path file), or could not be verified."""
+
+
 class InfrastructureError(FiberplanError, RuntimeError):
     """The machinery a sweep runs on failed (no live worker); finished results are kept."""
 

@@ -134,18 +134,28 @@ class MotorLimits:
             joint (0.4: by at most 40 % of the previous speed); starting and stopping are exempt.
         max_segments: most constant-speed segments per joint in one move.
         stop_before_reversing: a joint must stop (a zero-speed command) before turning back.
+        command_period_s: the controller's command period: every segment lasts a multiple of it
+            (used by :mod:`fiberplan.profiles`).
     """
 
     min_speed_rad_s: tuple[float, float] | None = None
     max_speed_change: float | None = None
     max_segments: int | None = None
     stop_before_reversing: bool = False
+    command_period_s: float | None = None
+
+    def unstated(self) -> list[str]:
+        """The limits not stated (unconstrained), by their file key."""
+        given = {"min_speed_rpm": self.min_speed_rad_s, "max_speed_change": self.max_speed_change,
+                 "max_segments": self.max_segments, "stop_before_reversing": self.stop_before_reversing or None,
+                 "command_period_s": self.command_period_s}
+        return [key for key, value in given.items() if value is None]
 
     @property
     def stated(self) -> bool:
         """Whether any limit is given."""
         return (self.min_speed_rad_s is not None or self.max_speed_change is not None or self.max_segments is not None
-                or self.stop_before_reversing)
+                or self.stop_before_reversing or self.command_period_s is not None)
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,7 @@ ZONE_KEYS = ("name", "arm", "shape", "vertices_mm", "from_mm", "to_mm", "width_m
 ZONE_SHAPES = ("polygon", "rectangle")
 INTERACTION_KEYS = ("pairs",)
 BETA_CONVENTIONS = ("extended", "folded")
-MOTOR_KEYS = ("min_speed_rpm", "max_speed_change", "max_segments", "stop_before_reversing")
+MOTOR_KEYS = ("min_speed_rpm", "max_speed_change", "max_segments", "stop_before_reversing", "command_period_s")
 
 
 def check_instrument(instrument: Instrument) -> None:
@@ -242,7 +242,12 @@ def _motors(data: dict[str, Any], origin: str) -> MotorLimits:
     reverse = table.get("stop_before_reversing", False)
     if not isinstance(reverse, bool):
         raise InstrumentError(f"{where}: stop_before_reversing must be true or false, found {reverse!r}")
-    return MotorLimits(minimum, change, segments, reverse)
+    period = _number(table, "command_period_s", where) if "command_period_s" in table else None
+    if period is not None and not period > 0:
+        raise InstrumentError(f"{where}: command_period_s must be > 0 seconds, found {period!r}")
+    if change is not None and not 0 < change < 1:
+        raise InstrumentError(f"{where}: max_speed_change must lie in (0, 1) (a relative change), found {change!r}")
+    return MotorLimits(minimum, change, segments, reverse, period)
 
 
 def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> Instrument:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -156,8 +157,11 @@ def _fiberplan_version() -> str:
         return "unknown"
 
 
-def save_result(result: PlanResult, path: str | Path) -> Path:
+def save_result(result: PlanResult, path: str | Path, extra: Callable[[h5py.File], None] | None = None) -> Path:
     """Write a plan result to an HDF5 file, atomically. Returns the path.
+
+    ``extra`` may add groups to the open file before it is renamed into place (the motor
+    profiles beside the trajectory they rebuild: :mod:`fiberplan.profile_io`).
 
     Raises:
         OutputError: the path must not be written (not a regular file) or writing failed.
@@ -198,6 +202,8 @@ def save_result(result: PlanResult, path: str | Path) -> Path:
             planner.attrs["stats_json"] = json.dumps(result.stats, default=_json_default)
             planner.attrs["plan_wall_s"] = float(result.plan_wall_s)
             planner.attrs["warnings_json"] = json.dumps(list(result.warnings))
+            if extra is not None:
+                extra(f)
     return path
 
 

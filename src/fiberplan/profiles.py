@@ -1,0 +1,651 @@
+"""Motor profiles: a verified trajectory as a few constant-speed segments per joint.
+
+A planner's samples (every 10-50 ms, speeds that may jump from full to zero in one step) are
+not what a motor controller takes. :func:`discretise` turns them into, per positioner and
+joint, a start time, a start angle and a list of ``(duration, speed)`` segments: positions
+piecewise linear in time, speeds piecewise constant (reference 004, section 11.5). The
+algorithm and its guarantee are in ``formulations/profiles.md``; in short:
+
+1. **Corridor.** Each positioner ``i`` may leave its planned path by at most a budget
+   ``B_i(t) = f c_ij(t) / 2`` (``f c_ij`` when ``j`` never moves) for every neighbour ``j``
+   with planned clearance ``c_ij``, measured by the motion bound
+   ``rho_alpha |d alpha| + rho_beta |d beta|`` (:func:`fiberplan.geometry.motion_bound`): alpha
+   gets half of it, beta what alpha leaves. At samples, no pair then comes closer than
+   ``(1 - f) c_ij``. Hard stops bound the corridor too.
+2. **Fewest segments.** From its start, each joint takes the longest constant-speed segment
+   that stays in its corridor at every sample, whose speed the motors accept after the previous
+   one (zero, or between the minimum and the top speed; within the relative speed change of the
+   previous speed, or a stop first when reversing), and from whose end the target is still
+   reachable. Breakpoints lie on the sample grid (on multiples of the controller's command
+   period when the instrument states one); the last one is the target, exactly.
+3. **Always re-checked.** The profiles are rebuilt into a trajectory (:meth:`Profiles.trajectory`)
+   and passed through the independent verifier. Positioners in a collision are fitted again in
+   a corridor four times narrower, twice; then they follow their verified planned samples.
+   What cannot be verified is refused (:class:`~fiberplan.errors.ProfileError`), never exported.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fiberplan.errors import ProfileError
+from fiberplan.geometry import capsule_segments, min_pair_clearance, point_extents
+from fiberplan.instrument import Instrument, MotorLimits
+from fiberplan.layout import neighbour_pairs
+from fiberplan.scenario import Scenario
+from fiberplan.trajectory import PlanResult, Trajectory
+from fiberplan.verify import VerificationReport, verify
+
+JOINTS = ("alpha", "beta")
+DEFAULT_FRACTION = 0.5  # f: the share of a pair's planned clearance the two profiles may use
+NARROWING = 0.25  # the corridor of a positioner found in a collision shrinks by this factor per round
+REFIT_ROUNDS = 2  # narrower fits before a positioner follows its planned samples
+SAMPLE_MAX_S = 0.05  # the rebuilt trajectory has a sample at least this often
+TIME_ROUND_S = 1e-9  # breakpoint times of different joints closer than this are one sample
+SEARCH = (4, 400)  # (next segments tried from each breakpoint, breakpoints one joint's search may try) in the first pass
+REFIT_SEARCH = (8, 800)  # the same for a positioner fitted again after breaking a motor limit
+REFIT_PASSES = 1  # passes over the positioners that break a motor limit
+ALPHA_SHARES = (0.5, 0.75)  # splits of a refitted positioner's room between alpha and beta
+REFIT_FRACTION = 0.9  # share of a pair's planned clearance a positioner refitted after breaking a motor limit may use
+REFINE = 5  # a positioner that breaks a motor limit is fitted again with this many breakpoint instants per sample interval
+_FAR_MM = 20.0  # pairs whose enclosing discs are farther apart are budgeted by that gap
+_TOL = 1e-12
+
+
+@dataclass(frozen=True, eq=False)
+class JointProfile:
+    """One joint's commands: from ``start_s`` at ``start_rad``, segments of constant speed.
+
+    Attributes:
+        start_s: time the first segment starts (s); the joint holds ``start_rad`` before.
+        start_rad: angle at ``start_s`` (rad).
+        durations_s: ``(S,)`` segment durations (s), positive.
+        speeds_rad_s: ``(S,)`` segment speeds (rad/s); zero is a hold.
+    """
+
+    start_s: float
+    start_rad: float
+    durations_s: np.ndarray
+    speeds_rad_s: np.ndarray
+
+    def knots(self) -> tuple[np.ndarray, np.ndarray]:
+        """Breakpoint times and angles ``(S + 1,)`` each: the time-stamped angle points."""
+        times = self.start_s + np.concatenate([[0.0], np.cumsum(self.durations_s)])
+        angles = self.start_rad + np.concatenate([[0.0], np.cumsum(self.speeds_rad_s * self.durations_s)])
+        return times, angles
+
+    @property
+    def n_moving(self) -> int:
+        """Segments with a non-zero speed."""
+        return int(np.count_nonzero(self.speeds_rad_s))
+
+
+@dataclass(frozen=True, eq=False)
+class Profiles:
+    """Motor profiles of every positioner of a scenario, with the verifier's report on them.
+
+    Attributes:
+        scenario: the positioners.
+        joints: ``(positioner index, joint index) -> JointProfile`` for every joint that moves;
+            the others hold their start.
+        report: the verifier's report on :meth:`trajectory` (``None`` until checked).
+        stats: how the profiles were made (segments, rounds, fallbacks, limits, timings).
+    """
+
+    scenario: Scenario
+    joints: dict[tuple[int, int], JointProfile]
+    report: VerificationReport | None = None
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    def knots(self) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
+        """Time-stamped angle points of every moving joint (see :meth:`JointProfile.knots`)."""
+        return {key: prof.knots() for key, prof in self.joints.items()}
+
+    def trajectory(self) -> Trajectory:
+        """The trajectory the profiles command (:func:`rebuild`)."""
+        return rebuild(self.scenario, self.knots())
+
+    def segment_counts(self) -> np.ndarray:
+        """``(N, 2)`` segments per joint (holds between moves included; 0: the joint never moves)."""
+        counts = np.zeros((self.scenario.n_positioners, 2), dtype=int)
+        for (i, axis), prof in self.joints.items():
+            counts[i, axis] = len(prof.durations_s)
+        return counts
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready figures: segments per joint, limits applied, makespans, the verifier's verdict."""
+        counts = self.segment_counts()
+        moving = counts[counts > 0]
+        report = self.report
+        return {
+            "positioners": self.scenario.n_positioners,
+            "joints_moving": len(moving),
+            "segments_median": float(np.median(moving)) if len(moving) else 0.0,
+            "segments_p95": float(np.percentile(moving, 95)) if len(moving) else 0.0,
+            "segments_max": int(moving.max()) if len(moving) else 0,
+            **self.stats,
+            "verified_ok": None if report is None else report.ok,
+            "collisions": None if report is None else report.n_collisions,
+            "min_clearance_mm": None if report is None else report.min_clearance_mm,
+            "motor_violations": None if report is None or not report.motors_checked else len(report.motor_violations),
+        }
+
+
+def rebuild(scenario: Scenario, knots: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]) -> Trajectory:
+    """The trajectory of piecewise-linear joint paths: ``(positioner index, joint index) ->
+    (times, angles)`` points, each joint holding its first angle before its first point and its
+    last after; joints not given hold the scenario's start.
+
+    The grid is every point's time (rounded to ``TIME_ROUND_S``), with samples in between at
+    least every ``SAMPLE_MAX_S``: a function of the points only, so every export form rebuilds
+    the same trajectory, and linear interpolation between its samples is the paths themselves.
+    """
+    stamps = [t for t, _ in knots.values()]
+    every = np.unique(np.round(np.concatenate([[0.0], *stamps]) / TIME_ROUND_S) * TIME_ROUND_S)
+    if len(every) > 1:
+        pieces = np.maximum(1, np.ceil(np.diff(every) / SAMPLE_MAX_S - 1e-9).astype(int))
+        fill = [np.linspace(a, b, k, endpoint=False) for a, b, k in zip(every[:-1], every[1:], pieces, strict=True)]
+        every = np.concatenate([*fill, every[-1:]])
+    joints = np.repeat(scenario.start[None], len(every), axis=0)
+    for (i, axis), (t_knot, q_knot) in knots.items():
+        joints[:, i, axis] = np.interp(every, t_knot, q_knot)
+    return Trajectory(every, joints)
+
+
+def limits_applied(instrument: Instrument) -> dict[str, Any]:
+    """The motor limits the profiles respect, in the instrument file's units (``None``: unconstrained)."""
+    motors = instrument.motors
+    rpm = 60.0 / (2.0 * np.pi)
+    return {
+        "max_speed_rpm": [round(instrument.alpha_speed_rad_s * rpm, 9), round(instrument.beta_speed_rad_s * rpm, 9)],
+        "min_speed_rpm": None if motors.min_speed_rad_s is None else [round(v * rpm, 9) for v in motors.min_speed_rad_s],
+        "max_speed_change": motors.max_speed_change,
+        "stop_before_reversing": motors.stop_before_reversing,
+        "max_segments": motors.max_segments,
+        "command_period_s": motors.command_period_s,
+    }
+
+
+def discretise(result: PlanResult, *, fraction: float = DEFAULT_FRACTION, instrument: Instrument | None = None) -> Profiles:
+    """Motor profiles of a plan result (see :func:`discretise_trajectory`)."""
+    return discretise_trajectory(result.scenario, result.trajectory, fraction=fraction, instrument=instrument)
+
+
+def discretise_trajectory(
+    scenario: Scenario, trajectory: Trajectory, *, fraction: float = DEFAULT_FRACTION, instrument: Instrument | None = None,
+) -> Profiles:
+    """Motor profiles of a verified trajectory, rebuilt and verified (see the module docstring).
+
+    Args:
+        scenario: the positioners the trajectory moves.
+        trajectory: a trajectory the verifier passes (a plan result's, or anyone's).
+        fraction: the share ``f`` of each pair's planned clearance the profiles may use (0, 1).
+        instrument: the instrument whose limits apply (default: the scenario's).
+
+    Returns:
+        :class:`Profiles` with ``report.ok`` true.
+
+    Raises:
+        ProfileError: the trajectory is not verified clean, ``fraction`` is outside (0, 1), the
+            command period is not a multiple of the sample step, or the profiles of some
+            positioners could not be verified even on their planned samples (named).
+    """
+    inst = scenario.instrument if instrument is None else instrument
+    if not 0.0 < fraction < 1.0:
+        raise ProfileError(f"fraction must lie in (0, 1), found {fraction}")
+    started = time.perf_counter()
+    source = verify(scenario, trajectory, instrument=inst)
+    if not source.ok:
+        raise ProfileError(
+            f"profiles are made only from a verified trajectory; this one has {source.n_collisions} collision(s), "
+            f"{len(source.limit_violations)} limit violation(s), {source.n_non_finite_samples} non-finite sample(s): "
+            "run `fiberplan verify` on it"
+        )
+    times, joints = trajectory.times, trajectory.joints
+    step = _period_steps(inst.motors, times)
+    room = _Room(inst, scenario, joints, fraction)
+    fits: dict[tuple[int, int], JointProfile] = {}
+    relaxed = np.zeros(scenario.n_positioners, dtype=int)
+    for i in range(scenario.n_positioners):  # first pass: half of each pair's room
+        relaxed[i] = _fit_positioner(inst, times, joints[:, i], room.half(i), step, fits, i, room)
+    for _ in range(REFIT_PASSES):  # then those that break a motor limit, in the room their neighbours leave
+        for i in np.argsort(-relaxed, kind="stable")[: np.count_nonzero(relaxed)].tolist():
+            relaxed[i] = _refit_positioner(inst, times, joints[:, i], room.left(i, max(fraction, REFIT_FRACTION)), step, fits, i, room)
+    for i in np.flatnonzero(relaxed).tolist():  # last: the neighbours make room
+        for j in room.neighbours(i).tolist():
+            kept = {key: fits[key] for key in ((j, 0), (j, 1)) if key in fits}
+            if relaxed[j] or not kept or _fit_positioner(inst, times, joints[:, j], room.half(j) * NARROWING, step, fits, j, room):
+                for axis in (0, 1):
+                    fits.pop((j, axis), None)
+                fits.update(kept)
+                room.record(j, fits, times, joints[:, j])
+        relaxed[i] = _refit_positioner(inst, times, joints[:, i], room.left(i, max(fraction, REFIT_FRACTION)), step, fits, i, room)
+    followed: list[int] = []
+    rounds = 0
+    narrow = np.ones(scenario.n_positioners)
+    while True:
+        profiles = Profiles(scenario, dict(sorted(fits.items())))
+        report = verify(scenario, profiles.trajectory(), instrument=inst)
+        if report.ok:
+            break
+        hit = np.unique([scenario.index_of(e.id_i) for e in report.collisions] + [scenario.index_of(e.id_j) for e in report.collisions])
+        if rounds > REFIT_ROUNDS or len(hit) == 0:
+            bad = sorted({int(scenario.ids[i]) for i in hit} | {v.positioner_id for v in report.limit_violations})
+            raise ProfileError(f"the profiles of positioners {bad} could not be verified, even on their planned samples; nothing exported")
+        rounds += 1
+        for i in hit.tolist():
+            if rounds > REFIT_ROUNDS:
+                _follow_samples(times, joints[:, i], fits, i)
+                room.record(i, fits, times, joints[:, i])
+                followed.append(int(scenario.ids[i]))
+            else:
+                narrow[i] *= NARROWING
+                relaxed[i] = _fit_positioner(inst, times, joints[:, i], room.half(i) * narrow[i], step, fits, i, room)
+    rebuilt = profiles.trajectory()
+    stats = {
+        "limits": limits_applied(inst),
+        "fraction": fraction,
+        "refit_rounds": rounds,
+        "followed_samples": sorted(set(followed)),
+        "relaxed_segments": int(relaxed.sum()),
+        "makespan_before_s": _makespan(times, joints),
+        "makespan_after_s": _makespan(rebuilt.times, rebuilt.joints),
+        "discretise_s": time.perf_counter() - started,
+    }
+    return Profiles(scenario, profiles.joints, report, stats)
+
+
+def _makespan(times: np.ndarray, joints: np.ndarray) -> float:
+    """Time of the last sample at which any joint still changes."""
+    moving = np.flatnonzero(np.any(joints[1:] != joints[:-1], axis=(1, 2)))
+    return float(times[moving[-1] + 1]) if len(moving) else 0.0
+
+
+def _period_steps(motors: MotorLimits, times: np.ndarray) -> int:
+    """Samples per command period (1 without one); the period must be a multiple of the sample step."""
+    if motors.command_period_s is None or len(times) < 2:
+        return 1
+    dt = np.diff(times)
+    ratio = motors.command_period_s / dt[0]
+    if not np.allclose(dt, dt[0], rtol=1e-9) or abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
+        raise ProfileError(
+            f"the command period {motors.command_period_s} s is not a multiple of the trajectory's sample step {dt[0]:.6g} s; "
+            "plan with a dt that divides it (--set dt_s=...)"
+        )
+    return round(ratio)
+
+
+class _Room:
+    """How far (mm, motion bound) each positioner may leave its planned path at each sample.
+
+    A pair ``(i, j)`` shares ``f c_ij``, with ``c_ij`` its planned clearance at the sample and
+    its two neighbours (the deviation is linear between samples, so a sample's room covers both
+    intervals). :meth:`half` gives ``i`` half of it (all of it when ``j`` never moves);
+    :meth:`left` what ``j``'s profile, as fitted so far, leaves (:meth:`record`).
+    """
+
+    def __init__(self, inst: Instrument, scenario: Scenario, joints: np.ndarray, fraction: float) -> None:
+        self.rho = point_extents(inst)
+        self.pairs = neighbour_pairs(inst, scenario.base_xy)
+        n_t, n = joints.shape[0], joints.shape[1]
+        clear = _pair_clearances(inst, scenario, joints, self.pairs) if len(self.pairs) else np.zeros((n_t, 0))
+        near = clear.copy()
+        near[1:] = np.minimum(near[1:], clear[:-1])
+        near[:-1] = np.minimum(near[:-1], clear[1:])
+        self.clear = np.maximum(near, 0.0)  # (T, P)
+        self.shared = fraction * self.clear
+        self.still = np.all(joints == joints[:1], axis=(0, 2))  # (N,) never moves
+        self.deviation = np.zeros((n_t, n))  # (T, N) motion bound of each fitted profile's deviation
+        self.of = [np.flatnonzero((self.pairs == i).any(axis=1)) for i in range(n)]
+
+    def _others(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        rows = self.of[i]
+        return rows, np.where(self.pairs[rows, 0] == i, self.pairs[rows, 1], self.pairs[rows, 0])
+
+    def neighbours(self, i: int) -> np.ndarray:
+        """Indices of ``i``'s neighbours."""
+        return self._others(i)[1]
+
+    def half(self, i: int) -> np.ndarray:
+        """``(T,)``: half of each pair's room (all of it next to a positioner that never moves)."""
+        rows, other = self._others(i)
+        if len(rows) == 0:
+            return np.full(self.shared.shape[0], np.inf)
+        return (self.shared[:, rows] * np.where(self.still[other], 1.0, 0.5)).min(axis=1)
+
+    def left(self, i: int, fraction: float) -> np.ndarray:
+        """``(T,)``: each pair's room, ``fraction`` of its planned clearance, less the neighbour's
+        recorded deviation."""
+        rows, other = self._others(i)
+        if len(rows) == 0:
+            return np.full(self.shared.shape[0], np.inf)
+        return np.maximum((fraction * self.clear[:, rows] - self.deviation[:, other]).min(axis=1), 0.0)
+
+    def record(self, i: int, fits: dict[tuple[int, int], JointProfile], times: np.ndarray, q: np.ndarray, refine: int = 1) -> None:
+        """Store positioner ``i``'s deviation from its planned angles ``q (T, 2)`` under its
+        fitted profiles; with breakpoints between samples (``refine > 1``), the largest
+        deviation around each sample."""
+        if refine == 1:
+            self.deviation[:, i] = _deviation(self.rho, fits, i, times, q)
+            return
+        fine_t, fine_q, _ = _refined(times, q, np.zeros(len(times)), refine)
+        fine = _deviation(self.rho, fits, i, fine_t, fine_q)
+        per_interval = np.concatenate([fine[:-1].reshape(-1, refine).max(axis=1), fine[-1:]])
+        dev = per_interval.copy()
+        dev[1:] = np.maximum(dev[1:], per_interval[:-1])
+        self.deviation[:, i] = dev
+
+
+def _deviation(rho: np.ndarray, fits: dict[tuple[int, int], JointProfile], i: int, times: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``(T,)`` motion bound of positioner ``i``'s profiles' deviation from ``q (T, 2)`` at the samples."""
+    out = np.zeros(len(times))
+    for axis in (0, 1):
+        prof = fits.get((i, axis))
+        if prof is not None:
+            t_knot, q_knot = prof.knots()
+            out += rho[axis] * np.abs(np.interp(times, t_knot, q_knot) - q[:, axis])
+    return out
+
+
+def _pair_clearances(inst: Instrument, scenario: Scenario, joints: np.ndarray, pairs: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """``(T, P)`` planned clearances: exact for pairs whose enclosing discs are within
+    ``_FAR_MM``, that gap (a lower bound) for the others."""
+    radii = np.array([c.radius_mm for c in inst.capsules])
+    out = np.empty((joints.shape[0], len(pairs)))
+    for k0 in range(0, joints.shape[0], chunk):
+        q = joints[k0:k0 + chunk]
+        start, end = capsule_segments(inst, scenario.base_xy, scenario.orient, q)
+        points = np.concatenate([start, end], axis=-2)
+        centre = 0.5 * (points.min(axis=-2) + points.max(axis=-2))
+        reach = (np.linalg.norm(points - centre[..., None, :], axis=-1) + np.concatenate([radii, radii])).max(axis=-1)
+        gap = np.linalg.norm(centre[:, pairs[:, 0]] - centre[:, pairs[:, 1]], axis=-1) - reach[:, pairs[:, 0]] - reach[:, pairs[:, 1]]
+        near = np.flatnonzero((gap < _FAR_MM).any(axis=0))
+        gap[:, near] = min_pair_clearance(inst, scenario.base_xy, scenario.orient, q, pairs[near])
+        out[k0:k0 + chunk] = gap
+    return out
+
+
+def _fit_positioner(
+    inst: Instrument, times: np.ndarray, q: np.ndarray, budget: np.ndarray, step: int,
+    fits: dict[tuple[int, int], JointProfile], i: int, room: _Room, alpha_share: float = 0.5, refine: int = 1,
+    search: tuple[int, int] = SEARCH,
+) -> int:
+    """Fit both joints of positioner ``i`` (planned angles ``q (T, 2)``) into ``fits`` and record
+    its deviation in ``room``: alpha within ``alpha_share`` of the budget (mm), beta within what
+    alpha leaves. With ``refine > 1`` breakpoints may also fall on ``refine - 1`` instants
+    between samples (the planned path is linear there; the budget is the smaller of the two
+    samples'). Returns the segments that had to break a motor limit."""
+    rho = room.rho
+    limits = (inst.alpha_limits_rad, inst.beta_limits_rad)
+    speeds = (inst.alpha_speed_rad_s, inst.beta_speed_rad_s)
+    fine_t, fine_q, left = _refined(times, q, budget, refine)
+    relaxed = 0
+    for axis in (0, 1):
+        fits.pop((i, axis), None)
+        share = alpha_share if axis == 0 and np.any(q[:, 1] != q[0, 1]) else 1.0
+        band = np.where(np.isfinite(left), share * np.maximum(left, 0.0) / rho[axis], np.inf)
+        fit = _fit_joint(fine_t, fine_q[:, axis], band, limits[axis], speeds[axis], inst.motors, axis, step * refine, search)
+        if fit is None:
+            continue
+        prof, n_relaxed = fit
+        fits[(i, axis)] = prof
+        relaxed += n_relaxed
+        if axis == 0:
+            t_knot, q_knot = prof.knots()
+            left = left - rho[0] * np.abs(np.interp(fine_t, t_knot, q_knot) - fine_q[:, 0])
+    room.record(i, fits, times, q, refine)
+    return relaxed
+
+
+def _refined(times: np.ndarray, q: np.ndarray, budget: np.ndarray, refine: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sample grid with ``refine - 1`` instants added in each interval: times, planned
+    angles (linear between samples) and budget (the smaller of the interval's two samples')."""
+    if refine == 1:
+        return times, q, budget.copy()
+    w = np.arange(refine) / refine
+    fine_t = np.concatenate([(times[:-1, None] + w * np.diff(times)[:, None]).ravel(), times[-1:]])
+    fine_q = np.stack([np.interp(fine_t, times, q[:, axis]) for axis in (0, 1)], axis=1)
+    inner = np.minimum(budget[:-1], budget[1:])[:, None].repeat(refine, axis=1)
+    inner[:, 0] = budget[:-1]
+    return fine_t, fine_q, np.concatenate([inner.ravel(), budget[-1:]])
+
+
+def _refit_positioner(
+    inst: Instrument, times: np.ndarray, q: np.ndarray, budget: np.ndarray, step: int,
+    fits: dict[tuple[int, int], JointProfile], i: int, room: _Room,
+) -> int:
+    """Fit positioner ``i`` again in the room its neighbours' profiles leave, trying several
+    splits between its joints (``ALPHA_SHARES``), then breakpoints between samples (``REFINE``, when the instrument
+    states no command period); keep the fit with the fewest motor-limit breaks, then segments."""
+    tries = [(share, 1) for share in ALPHA_SHARES]
+    if inst.motors.command_period_s is None:
+        tries += [(share, REFINE) for share in ALPHA_SHARES]
+    best: tuple[int, int, dict[tuple[int, int], JointProfile], int] = (np.iinfo(int).max, 0, {}, 1)
+    for share, refine in tries:
+        trial: dict[tuple[int, int], JointProfile] = {}
+        n_relaxed = _fit_positioner(inst, times, q, budget, step, trial, i, room, share, refine, REFIT_SEARCH)
+        n_segments = sum(len(p.durations_s) for p in trial.values())
+        if (n_relaxed, n_segments) < best[:2]:
+            best = (n_relaxed, n_segments, trial, refine)
+        if n_relaxed == 0:
+            break
+    for axis in (0, 1):
+        fits.pop((i, axis), None)
+    fits.update(best[2])
+    room.record(i, fits, times, q, best[3])
+    return best[0]
+
+
+def _allowed_speeds(prev: float, top: float, motors: MotorLimits, axis: int) -> list[tuple[float, float]]:
+    """Speed intervals a segment may take after one at ``prev``: a hold, or a move between the
+    minimum and the top speed, within the speed change of ``prev`` and not reversing without a stop."""
+    low = 0.0 if motors.min_speed_rad_s is None else motors.min_speed_rad_s[axis]
+    moves = [(max(low, _TOL), top), (-top, -max(low, _TOL))]
+    if prev != 0.0:
+        if motors.stop_before_reversing or motors.max_speed_change is not None:
+            moves = [m for m in moves if (m[0] > 0) == (prev > 0)]
+        if motors.max_speed_change is not None:
+            a, b = sorted((prev * (1 - motors.max_speed_change), prev * (1 + motors.max_speed_change)))
+            moves = [(max(lo, a), min(hi, b)) for lo, hi in moves]
+    return [(0.0, 0.0), *[(lo, hi) for lo, hi in moves if lo <= hi]]
+
+
+def _fit_joint(
+    times: np.ndarray, q: np.ndarray, band: np.ndarray, stops: tuple[float, float], top: float, motors: MotorLimits,
+    axis: int, step: int, search: tuple[int, int] = SEARCH,
+) -> tuple[JointProfile, int] | None:
+    """Fit one joint (planned angles ``q (T,)``, corridor half-width ``band (T,)`` rad): ``None``
+    if the joint never moves, else its profile and the number of segments that had to break a
+    motor limit (0 unless the search below fails).
+
+    Depth-first search over breakpoints, longest segment first (:func:`_options`, ``search[0]``
+    from each); a dead end (no allowed speed stays in the corridor) backtracks. After
+    ``search[1]`` breakpoints tried,
+    the greedy fit that breaks a motor limit where it must (:func:`_relaxed_fit`) is taken.
+    """
+    moved = np.flatnonzero(q[1:] != q[:-1])
+    if len(moved) == 0:
+        return None
+    k0 = int(moved[0]) // step * step
+    k1 = k0 + -(-(int(moved[-1]) + 1 - k0) // step) * step  # the last move's end, on the command grid
+    if k1 >= len(times):  # past the last sample: the joint holds its final angle
+        extra = k1 - len(times) + 1
+        times = np.concatenate([times, times[-1] + (times[-1] - times[-2]) * np.arange(1, extra + 1)])
+        q = np.concatenate([q, np.repeat(q[-1:], extra)])
+        band = np.concatenate([band, np.repeat(band[-1:], extra)])
+    lo = np.maximum(q - band, stops[0] - _TOL)
+    hi = np.minimum(q + band, stops[1] + _TOL)
+    lo[k0], hi[k0], lo[k1], hi[k1] = q[k0], q[k0], q[k1], q[k1]
+    _reachable(lo, hi, times, top, k0, k1)
+    cor = _Corridor(times, q, lo, hi, k0, k1, step, top, motors, axis, search[0])
+    stack = [_Node(k0, float(q[k0]), 0.0, _options(cor, k0, float(q[k0]), 0.0))]
+    tried = 0
+    while stack and stack[-1].k < k1 and tried < search[1]:
+        node = stack[-1]
+        if not node.options:
+            stack.pop()
+            continue
+        m, s = node.options.pop(0)
+        tried += 1
+        p = float(q[k1]) if m == k1 else node.p + s * float(times[m] - times[node.k])
+        stack.append(_Node(m, p, s, _options(cor, m, p, s) if m < k1 else []))
+    if stack and stack[-1].k == k1:
+        knots = [(node.k, node.speed) for node in stack[1:]]
+        ks = np.array([k0] + [k for k, _ in knots])
+        durations = np.diff(times[ks])
+        speeds = np.diff(np.array([node.p for node in stack])) / durations
+        relaxed = 0
+    else:
+        durations, speeds, relaxed = _relaxed_fit(cor)
+    return _trimmed(float(times[k0]), float(q[k0]), durations, speeds), relaxed
+
+
+@dataclass(frozen=True, eq=False)
+class _Corridor:
+    """One joint's fitting problem: planned angles, corridor, window ``[k0, k1]``, limits."""
+
+    times: np.ndarray
+    q: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    k0: int
+    k1: int
+    step: int
+    top: float
+    motors: MotorLimits
+    axis: int
+    branches: int
+
+
+@dataclass(eq=False)
+class _Node:
+    """A breakpoint of the search: sample ``k``, angle ``p``, speed of the segment ending here,
+    and the segments still to try from here."""
+
+    k: int
+    p: float
+    speed: float
+    options: list[tuple[int, float]]
+
+
+def _cone(cor: _Corridor, k: int, p: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """From angle ``p`` at sample ``k``: the candidate breakpoint samples, and at each the
+    speeds ``[s_lo, s_hi]`` that keep a segment in the corridor, and the speed back onto the path."""
+    js = np.arange(k + 1, cor.k1 + 1)
+    dt = cor.times[js] - cor.times[k]
+    s_lo = np.maximum.accumulate((cor.lo[js] - p) / dt)
+    s_hi = np.minimum.accumulate((cor.hi[js] - p) / dt)
+    open_ = int(np.argmin(s_lo <= s_hi + _TOL)) if not np.all(s_lo <= s_hi + _TOL) else len(js)
+    cand = np.flatnonzero((((js - cor.k0) % cor.step == 0) | (js == cor.k1))[:open_])
+    if len(cand) == 0:
+        cand = np.flatnonzero(((js - cor.k0) % cor.step == 0) | (js == cor.k1))[:1]
+    return js[cand], s_lo[cand], s_hi[cand], (cor.q[js[cand]] - p) / dt[cand]
+
+
+def _options(cor: _Corridor, k: int, p: float, prev: float) -> list[tuple[int, float]]:
+    """Up to ``cor.branches`` next segments ``(end sample, speed)`` the motors accept after ``prev``
+    and the corridor holds: farthest end first, then the speed nearest the path."""
+    ends, s_lo, s_hi, aim = _cone(cor, k, p)
+    found: list[tuple[int, float, float]] = []
+    for a, b in _allowed_speeds(prev, cor.top, cor.motors, cor.axis):
+        lo = np.maximum(s_lo, a)
+        hi = np.minimum(s_hi, b)
+        for c in np.flatnonzero(lo <= hi + _TOL)[-cor.branches:].tolist():
+            s = float(np.clip(aim[c], lo[c], max(lo[c], hi[c])))
+            found.append((int(ends[c]), s, abs(s - aim[c])))
+    found.sort(key=lambda f: (-f[0], f[2]))
+    return [(m, s) for m, s, _ in found[:cor.branches]]
+
+
+def _relaxed_fit(cor: _Corridor) -> tuple[np.ndarray, np.ndarray, int]:
+    """The greedy fit that stays in the corridor and, where no allowed speed does, takes the
+    speed back onto the path (clipped to the corridor and the top speed), breaking a motor
+    limit. Returns durations, speeds and the number of such segments."""
+    k, p, prev = cor.k0, float(cor.q[cor.k0]), 0.0
+    ks, ps = [k], [p]
+    relaxed = 0
+    while k < cor.k1:
+        opts = _options(cor, k, p, prev)
+        if opts:
+            m, s = opts[0]
+        else:
+            relaxed += 1
+            ends, s_lo, s_hi, aim = _cone(cor, k, p)
+            m, s = int(ends[0]), float(np.clip(np.clip(aim[0], s_lo[0], s_hi[0]), -cor.top, cor.top))
+        p = float(cor.q[cor.k1]) if m == cor.k1 else p + s * float(cor.times[m] - cor.times[k])
+        k, prev = m, s
+        ks.append(k)
+        ps.append(p)
+    durations = np.diff(cor.times[np.array(ks)])
+    return durations, np.diff(np.array(ps)) / durations, relaxed
+
+
+def _trimmed(start_s: float, start_rad: float, durations: np.ndarray, speeds: np.ndarray) -> JointProfile:
+    """A profile with consecutive equal speeds merged and leading and trailing holds dropped."""
+    keep_d: list[float] = []
+    keep_s: list[float] = []
+    for d, s in zip(durations.tolist(), speeds.tolist(), strict=True):
+        if keep_s and abs(s - keep_s[-1]) <= _TOL:
+            keep_d[-1] += d
+        else:
+            keep_d.append(d)
+            keep_s.append(s)
+    while keep_s and keep_s[-1] == 0.0:
+        keep_s.pop()
+        keep_d.pop()
+    while keep_s and keep_s[0] == 0.0:
+        start_s += keep_d.pop(0)
+        keep_s.pop(0)
+    return JointProfile(start_s, start_rad, np.array(keep_d), np.array(keep_s))
+
+
+def _reachable(lo: np.ndarray, hi: np.ndarray, times: np.ndarray, top: float, k0: int, k1: int) -> None:
+    """Narrow the corridor ``[lo, hi]`` in place, backwards from ``k1``, so that from any angle in
+    it at one sample the corridor at the next is reachable at the top speed. The planned path,
+    itself within the top speed, stays inside; so does every greedy segment's end."""
+    move = top * np.diff(times)
+    for k in range(k1 - 1, k0 - 1, -1):
+        lo[k] = max(lo[k], lo[k + 1] - move[k])
+        hi[k] = min(hi[k], hi[k + 1] + move[k])
+
+
+def _farthest(
+    cand: np.ndarray, g_lo: np.ndarray, g_hi: np.ndarray, allowed: list[tuple[float, float]], aim: np.ndarray,
+) -> tuple[int, float] | None:
+    """The farthest candidate whose slope cone ``[g_lo, g_hi]`` meets an allowed speed, and there
+    the allowed speed nearest ``aim`` (the slope back onto the planned path)."""
+    best_c, best_s = -1, 0.0
+    for a, b in allowed:
+        lo = np.maximum(g_lo, a)
+        hi = np.minimum(g_hi, b)
+        ok = np.flatnonzero(lo <= hi + _TOL)
+        if len(ok) == 0:
+            continue
+        c = int(ok[-1])
+        s = float(np.clip(aim[c], lo[c], max(lo[c], hi[c])))
+        if c > best_c or (c == best_c and abs(s - aim[c]) < abs(best_s - aim[c])):
+            best_c, best_s = c, s
+    return None if best_c < 0 else (int(cand[best_c]), best_s)
+
+
+def _follow_samples(times: np.ndarray, q: np.ndarray, fits: dict[tuple[int, int], JointProfile], i: int) -> None:
+    """Replace positioner ``i``'s profiles by its planned samples (one segment per change of speed)."""
+    for axis in (0, 1):
+        fits.pop((i, axis), None)
+        dq = np.diff(q[:, axis])
+        moved = np.flatnonzero(dq != 0)
+        if len(moved) == 0:
+            continue
+        k0, k1 = int(moved[0]), int(moved[-1]) + 1
+        dt = np.diff(times[k0:k1 + 1])
+        v = dq[k0:k1] / dt
+        change = np.flatnonzero(np.abs(np.diff(v)) > _TOL) + 1
+        bounds = np.concatenate([[0], change, [len(v)]])
+        durations = np.array([dt[a:b].sum() for a, b in itertools.pairwise(bounds)])
+        speeds = v[bounds[:-1]]
+        fits[(i, axis)] = JointProfile(float(times[k0]), float(q[k0, axis]), durations, speeds)

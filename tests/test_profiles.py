@@ -1,0 +1,264 @@
+"""Motor profiles: fewest constant-speed segments within the motor limits, rebuilt, verified,
+exported and read back identically; foreign paths verified; bad input refused by name."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import h5py
+import numpy as np
+import pytest
+
+import fiberplan as fp
+from fiberplan.cli import main
+from fiberplan.errors import InstrumentError, ProfileError
+from fiberplan.instrument import MotorLimits
+from fiberplan.instrument_io import instrument_from_dict, instrument_text
+from fiberplan.profile_io import read_paths, write_profiles
+from fiberplan.profiles import _allowed_speeds, _fit_joint, discretise_trajectory, rebuild
+
+
+@pytest.fixture(scope="module")
+def moons_run() -> fp.PlanResult:
+    """MOONS (capsule model, motor limits stated) 19 unfold seed 1, planned by the mpc."""
+    return fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 1), "mpc")
+
+
+@pytest.fixture(scope="module")
+def moons_profiles(moons_run):
+    return fp.discretise(moons_run)
+
+
+def _run(args: list[str], capsys) -> tuple[int, str, str]:
+    """Exit status, stdout and stderr of the command line."""
+    try:
+        main(args)
+        code = 0
+    except SystemExit as e:
+        code = int(e.code or 0)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_profiles_are_verified_reach_the_same_ends_and_keep_the_makespan(moons_run, moons_profiles):
+    report = moons_profiles.report
+    assert report is not None and report.ok and report.n_collisions == 0
+    rebuilt = moons_profiles.trajectory()
+    np.testing.assert_array_equal(rebuilt.joints[0], moons_run.trajectory.joints[0])
+    np.testing.assert_allclose(rebuilt.joints[-1], moons_run.trajectory.joints[-1], atol=1e-12)
+    summary = moons_profiles.summary()
+    assert summary["makespan_after_s"] <= summary["makespan_before_s"] + 1e-9
+    assert fp.summarize(fp.PlanResult(moons_run.scenario, rebuilt, moons_run.outcome, "mpc", {}, {}, 0.0))["reached"] == 19
+
+
+def test_profiles_respect_the_motor_limits_the_samples_break(moons_run, moons_profiles):
+    """The planned samples break MOONS' motor limits; the profiles of this run do not."""
+    source = fp.verify(moons_run.scenario, moons_run.trajectory)
+    assert source.motors_checked and len(source.motor_violations) > 0
+    assert moons_profiles.report.motor_violations == []
+    motors = moons_run.scenario.instrument.motors
+    for (_, axis), prof in moons_profiles.joints.items():
+        speeds = prof.speeds_rad_s
+        moving = speeds[speeds != 0]
+        assert np.all(np.abs(moving) >= motors.min_speed_rad_s[axis] * (1 - 1e-9))
+        assert len(speeds) <= motors.max_segments
+        for a, b in zip(speeds[:-1], speeds[1:], strict=True):
+            if a != 0 and b != 0:
+                assert a * b > 0, "reversal without a stop"
+                assert abs(b - a) <= motors.max_speed_change * abs(a) * (1 + 1e-9)
+
+
+def test_fewer_segments_than_samples(moons_run, moons_profiles):
+    counts = moons_profiles.segment_counts()
+    samples = len(moons_run.trajectory.times)
+    assert counts.max() < samples / 4
+    assert np.median(counts[counts > 0]) <= 3
+
+
+@pytest.mark.parametrize("form,name", [("json", "p.json"), ("csv", "p.csv"), ("points", "pts.json"), ("h5", "p.h5")])
+def test_every_export_form_rebuilds_the_same_trajectory(moons_run, moons_profiles, tmp_path, form, name):
+    path = write_profiles(moons_profiles, moons_run, tmp_path / name, form)
+    scenario, trajectory, found = read_paths(path, moons_run.scenario if form == "csv" else None)
+    reference = moons_profiles.trajectory()
+    assert found == form
+    assert scenario.n_positioners == 19
+    np.testing.assert_array_equal(trajectory.times, reference.times)
+    np.testing.assert_array_equal(trajectory.joints, reference.joints)
+
+
+def test_points_in_degrees_read_as_radians(moons_run, moons_profiles, tmp_path):
+    path = write_profiles(moons_profiles, moons_run, tmp_path / "pts.json", "points")
+    data = json.loads(path.read_text())
+    data["angle_unit"] = "deg"
+    for entry in data["positioners"]:
+        for joint in ("alpha", "beta"):
+            if joint in entry:
+                entry[joint] = [[t, math.degrees(q)] for t, q in entry[joint]]
+    (tmp_path / "deg.json").write_text(json.dumps(data))
+    _, trajectory, _ = read_paths(tmp_path / "deg.json")
+    np.testing.assert_allclose(trajectory.joints, moons_profiles.trajectory().joints, atol=1e-12)
+
+
+def test_an_unverified_trajectory_is_refused(moons_run):
+    scenario = moons_run.scenario
+    straight = fp.plan(scenario, "straight")
+    if fp.verify(scenario, straight.trajectory).ok:
+        pytest.skip("the straight plan happens to be clean")
+    with pytest.raises(ProfileError, match="verified trajectory"):
+        fp.discretise(straight)
+
+
+def test_fit_joint_holds_or_moves_within_the_speed_range_and_the_corridor():
+    """A slow creep (below the minimum speed) in a corridor: holds and moves at allowed speeds only."""
+    times = np.arange(0, 4.0001, 0.05)
+    q = np.concatenate([np.linspace(0.0, 0.1, 41), np.linspace(0.1, 0.5, 40)[1:], [0.5]])[: len(times)]
+    band = np.full(len(times), 0.02)
+    motors = MotorLimits(min_speed_rad_s=(0.1, 0.1), max_speed_change=0.4, stop_before_reversing=True)
+    prof, relaxed = _fit_joint(times, q, band, (-1.0, 1.0), 0.6, motors, 0, 1)
+    assert relaxed == 0
+    t_knot, q_knot = prof.knots()
+    assert q_knot[-1] == pytest.approx(q[-1], abs=1e-12)
+    moving = prof.speeds_rad_s[prof.speeds_rad_s != 0]
+    assert np.all((np.abs(moving) >= 0.1 - 1e-12) & (np.abs(moving) <= 0.6 + 1e-12))
+    path = np.interp(times, t_knot, q_knot, left=q[0], right=q[-1])
+    assert np.max(np.abs(path - q)) <= 0.02 + 1e-9
+    assert len(prof.durations_s) < 10
+
+
+def test_allowed_speeds_after_a_move():
+    motors = MotorLimits(min_speed_rad_s=(0.1, 0.2), max_speed_change=0.4, stop_before_reversing=True)
+    assert _allowed_speeds(0.0, 1.0, motors, 1) == [(0.0, 0.0), (0.2, 1.0), (-1.0, -0.2)]
+    allowed = _allowed_speeds(0.5, 1.0, motors, 0)
+    assert allowed[0] == (0.0, 0.0) and len(allowed) == 2
+    assert allowed[1] == pytest.approx((0.3, 0.7))
+
+
+def test_rebuild_holds_before_and_after_the_points(desi_random_61):
+    knots = {(0, 0): (np.array([0.5, 1.0]), np.array([0.2, 0.4]))}
+    trajectory = rebuild(desi_random_61, knots)
+    assert trajectory.times[0] == 0.0 and trajectory.times[-1] == pytest.approx(1.0)
+    assert np.all(np.diff(trajectory.times) <= 0.05 + 1e-12)
+    assert trajectory.at(0.25)[0, 0] == pytest.approx(0.2)
+    assert trajectory.at(0.75)[0, 0] == pytest.approx(0.3)
+    np.testing.assert_array_equal(trajectory.joints[:, 1:], np.repeat(desi_random_61.start[None, 1:], len(trajectory.times), axis=0))
+
+
+def test_command_period_must_divide_into_samples(moons_run):
+    spec = json.loads(json.dumps(moons_run.scenario.instrument.to_dict()))
+    spec["motors"]["command_period_s"] = 0.07
+    inst = instrument_from_dict(spec, origin="test")
+    assert inst.motors.command_period_s == pytest.approx(0.07)
+    with pytest.raises(ProfileError, match="command period 0.07 s is not a multiple"):
+        discretise_trajectory(moons_run.scenario, moons_run.trajectory, instrument=inst)
+    spec["motors"]["command_period_s"] = 0.1
+    made = discretise_trajectory(moons_run.scenario, moons_run.trajectory, instrument=instrument_from_dict(spec, origin="test"))
+    assert made.report.ok
+    for prof in made.joints.values():
+        ratio = prof.durations_s / 0.1
+        assert np.allclose(ratio, np.round(ratio), atol=1e-6)
+
+
+def test_motor_keys_are_validated():
+    import tomllib
+
+    spec = tomllib.loads(instrument_text("moons-capsules"))
+    spec["motors"]["command_period_s"] = "0.1"
+    with pytest.raises(InstrumentError, match="command_period_s must be a number"):
+        instrument_from_dict(spec, origin="x")
+    spec["motors"]["command_period_s"] = 0.1
+    spec["motors"]["max_speed_change"] = 1.5
+    with pytest.raises(InstrumentError, match="max_speed_change must lie in"):
+        instrument_from_dict(spec, origin="x")
+
+
+def test_csv_errors_name_the_row(moons_run, moons_profiles, tmp_path):
+    path = write_profiles(moons_profiles, moons_run, tmp_path / "p.csv", "csv")
+    rows = list(csv.reader(path.open()))
+    rows[3][4] = "fast"
+    bad = tmp_path / "bad.csv"
+    with bad.open("w", newline="") as handle:
+        csv.writer(handle).writerows(rows)
+    with pytest.raises(ProfileError, match="row 4: duration_s must be a number, found 'fast'"):
+        read_paths(bad, moons_run.scenario)
+    rows = list(csv.reader(path.open()))
+    rows[2][0] = "999"
+    with bad.open("w", newline="") as handle:
+        csv.writer(handle).writerows(rows)
+    with pytest.raises(ProfileError, match="row 3: positioner 999 is not in the scenario"):
+        read_paths(bad, moons_run.scenario)
+    with pytest.raises(ProfileError, match="holds no scenario"):
+        read_paths(path)
+
+
+def test_json_errors_name_the_entry(moons_run, moons_profiles, tmp_path):
+    path = write_profiles(moons_profiles, moons_run, tmp_path / "p.json", "json")
+    data = json.loads(path.read_text())
+    data["profiles"][1]["joint"] = "gamma"
+    (tmp_path / "bad.json").write_text(json.dumps(data))
+    with pytest.raises(ProfileError, match=r"profiles\[1\]: joint must be 'alpha' or 'beta'"):
+        read_paths(tmp_path / "bad.json")
+    (tmp_path / "other.json").write_text(json.dumps({"format": "something"}))
+    with pytest.raises(ProfileError, match="not a fiberplan profiles or points file"):
+        read_paths(tmp_path / "other.json")
+
+
+def test_cli_profiles_then_verify(moons_run, tmp_path, capsys):
+    run = tmp_path / "m.h5"
+    fp.save_result(moons_run, run)
+    code, out, _ = _run(["profiles", str(run), "--out", str(tmp_path / "p.h5"), "--json"], capsys)
+    assert code == 0
+    summary = json.loads(out)
+    assert summary["verified_ok"] is True and summary["format"] == "h5" and summary["motor_violations"] == 0
+    code, out, _ = _run(["verify", str(tmp_path / "p.h5"), "--json", "--motors"], capsys)
+    assert code == 0
+    report = json.loads(out)
+    assert report["verified_ok"] and report["collisions"] == 0 and report["report"]["motor_violations"] == []
+    assert report["reached"] == 19
+
+
+def test_cli_verify_reads_foreign_paths(moons_run, moons_profiles, tmp_path, capsys):
+    write_profiles(moons_profiles, moons_run, tmp_path / "p.csv", "csv")
+    (tmp_path / "s.json").write_text(json.dumps(moons_run.scenario.to_dict()))
+    code, out, _ = _run(["verify", "--paths", str(tmp_path / "p.csv"), "--scenario", str(tmp_path / "s.json"), "--json"], capsys)
+    assert code == 0 and json.loads(out)["verified_ok"] is True
+    code, _, err = _run(["verify", "--paths", str(tmp_path / "p.csv")], capsys)
+    assert code == 2 and "holds no scenario" in err and "Traceback" not in err
+    code, _, err = _run(["verify"], capsys)
+    assert code == 2 and "give a trajectory FILE, or --paths" in err
+
+
+def test_cli_verify_catches_colliding_foreign_paths(moons_run, tmp_path, capsys):
+    """Time-stamped points that drive two positioners straight to their targets collide: exit 1."""
+    scenario = moons_run.scenario
+    straight = fp.plan(scenario, "straight")
+    report = fp.verify(scenario, straight.trajectory)
+    if report.ok:
+        pytest.skip("the straight plan happens to be clean")
+    positioners = []
+    for i, ident in enumerate(scenario.ids.tolist()):
+        entry = {"id": ident}
+        for axis, joint in enumerate(("alpha", "beta")):
+            entry[joint] = [[float(t), float(q)] for t, q in zip(straight.trajectory.times, straight.trajectory.joints[:, i, axis], strict=True)]
+        positioners.append(entry)
+    (tmp_path / "pts.json").write_text(json.dumps({"format": "fiberplan-points", "version": 1, "angle_unit": "rad", "positioners": positioners}))
+    (tmp_path / "s.json").write_text(json.dumps(scenario.to_dict()))
+    code, out, _ = _run(["verify", "--paths", str(tmp_path / "pts.json"), "--scenario", str(tmp_path / "s.json")], capsys)
+    assert code == 1 and "collision: positioners" in out
+
+
+def test_tampered_profiles_group_is_a_file_inconsistency(moons_run, moons_profiles, tmp_path, capsys):
+    path = write_profiles(moons_profiles, moons_run, tmp_path / "p.h5", "h5")
+    with h5py.File(path, "r+") as f:
+        f["profiles/speed_rad_s"][0] = f["profiles/speed_rad_s"][0] * 1.01
+    code, out, _ = _run(["verify", str(path)], capsys)
+    assert code == 1 and "/profiles does not rebuild /trajectory exactly" in out
+
+
+def test_cli_refuses_an_unknown_extension_before_work(moons_run, tmp_path, capsys):
+    run = tmp_path / "m.h5"
+    fp.save_result(moons_run, run)
+    code, _, err = _run(["profiles", str(run), "--out", str(tmp_path / "p.txt")], capsys)
+    assert code == 2 and "cannot tell the format" in err
+    assert not (tmp_path / "p.txt").exists()
