@@ -4,6 +4,7 @@ exported and read back identically; foreign paths verified; bad input refused by
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import math
 
@@ -64,7 +65,7 @@ def test_profiles_respect_the_motor_limits_the_samples_break(moons_run, moons_pr
         moving = speeds[speeds != 0]
         assert np.all(np.abs(moving) >= motors.min_speed_rad_s[axis] * (1 - 1e-9))
         assert len(speeds) <= motors.max_segments
-        for a, b in zip(speeds[:-1], speeds[1:], strict=True):
+        for a, b in itertools.pairwise(speeds):
             if a != 0 and b != 0:
                 assert a * b > 0, "reversal without a stop"
                 assert abs(b - a) <= motors.max_speed_change * abs(a) * (1 + 1e-9)
