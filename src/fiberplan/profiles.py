@@ -607,11 +607,16 @@ def _trimmed(start_s: float, start_rad: float, durations: np.ndarray, speeds: np
 def _reachable(lo: np.ndarray, hi: np.ndarray, times: np.ndarray, top: float, k0: int, k1: int) -> None:
     """Narrow the corridor ``[lo, hi]`` in place, backwards from ``k1``, so that from any angle in
     it at one sample the corridor at the next is reachable at the top speed. The planned path,
-    itself within the top speed, stays inside; so does every greedy segment's end."""
-    move = top * np.diff(times)
-    for k in range(k1 - 1, k0 - 1, -1):
-        lo[k] = max(lo[k], lo[k + 1] - move[k])
-        hi[k] = min(hi[k], hi[k + 1] + move[k])
+    itself within the top speed, stays inside; so does every greedy segment's end.
+
+    With ``C_k`` the top-speed travel from ``k0`` to ``k``, the recursion
+    ``lo_k <- max(lo_k, lo_{k+1} - (C_{k+1} - C_k))`` is ``lo_k <- C_k + max_{j >= k}(lo_j - C_j)``
+    (and ``hi`` alike), a reversed running extremum.
+    """
+    travel = np.concatenate([[0.0], np.cumsum(top * np.diff(times[k0:k1 + 1]))])
+    window = slice(k0, k1 + 1)
+    lo[window] = travel + np.maximum.accumulate((lo[window] - travel)[::-1])[::-1]
+    hi[window] = -travel + np.minimum.accumulate((hi[window] + travel)[::-1])[::-1]
 
 
 def _farthest(

@@ -1,0 +1,129 @@
+"""Motor profiles on the benchmark sets: segments per joint, verified exports, makespan and time.
+
+For each run of a set: plan (the planner's instrument defaults), discretise
+(:func:`fiberplan.discretise`), and record the segments per moving joint, whether the first
+fit passed the verifier (``refit_rounds == 0``) and whether the export is verified, the motor
+violations left, the makespan before and after, and the discretisation time against the plan
+time. Writes one JSON file (rows and aggregates, with the machine)::
+
+    python benchmarks/profiles_bench.py --out benchmarks/results/profiles.json            # the quick sets
+    python benchmarks/profiles_bench.py --full --out benchmarks/results/profiles_full.json  # the issue's sets
+
+Rows are written after every run (a killed run keeps what was measured).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import machine_info
+
+QUICK = (
+    ("mpc", "desi", 500, "random", range(20)),
+    ("mpc", "moons", 61, "unfold", range(10)),
+    ("mpc", "moons-capsules", 61, "unfold", range(10)),
+    ("mpc", "sdss", 547, "random", range(5)),
+    ("dnf", "desi", 500, "random", range(10)),
+    ("dnf", "moons-capsules", 61, "unfold", range(10)),
+)
+FULL = (
+    ("mpc", "desi", 500, "random", range(100)),
+    ("mpc", "moons", 61, "unfold", range(50)),
+    ("mpc", "sdss", 547, "random", range(20)),
+    ("dnf", "desi", 500, "random", range(100)),
+)
+
+
+def measure(planner: str, instrument: str, n: int, kind: str, seed: int) -> dict:
+    """Plan and discretise one run; its figures."""
+    import fiberplan as fp
+
+    scenario = fp.make_scenario(instrument, n, kind, seed)
+    result = fp.plan(scenario, planner)
+    row = {"planner": planner, "instrument": instrument, "n": n, "kind": kind, "seed": seed, "plan_wall_s": result.plan_wall_s}
+    if not fp.verify(scenario, result.trajectory).ok:
+        return row | {"error": "plan not verified"}
+    started = time.perf_counter()
+    try:
+        made = fp.discretise(result)
+    except fp.FiberplanError as e:
+        return row | {"error": str(e), "discretise_s": time.perf_counter() - started}
+    summary = made.summary()
+    counts = made.segment_counts()
+    moving = counts[counts > 0]
+    return row | {
+        "discretise_s": summary["discretise_s"],
+        "segments": moving.tolist(),
+        "segments_median": float(np.median(moving)) if len(moving) else 0.0,
+        "segments_max": int(moving.max()) if len(moving) else 0,
+        "first_pass_verified": summary["refit_rounds"] == 0,
+        "verified_ok": summary["verified_ok"],
+        "followed_samples": len(summary["followed_samples"]),
+        "motor_violations": summary["motor_violations"],
+        "makespan_before_s": summary["makespan_before_s"],
+        "makespan_after_s": summary["makespan_after_s"],
+        "reached": fp.summarize(result)["reached"],
+    }
+
+
+def aggregate(rows: list[dict]) -> list[dict]:
+    """Per (planner, instrument, n, kind): the issue's figures."""
+    groups: dict[tuple, list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["planner"], row["instrument"], row["n"], row["kind"]), []).append(row)
+    out = []
+    for (planner, instrument, n, kind), group in groups.items():
+        ok = [r for r in group if "error" not in r]
+        segments = np.concatenate([r["segments"] for r in ok]) if ok else np.zeros(0)
+        increase = [r["makespan_after_s"] / r["makespan_before_s"] - 1 for r in ok if r["makespan_before_s"] > 0]
+        share = [r["discretise_s"] / r["plan_wall_s"] for r in ok if r["plan_wall_s"] > 0]
+        violations = [r["motor_violations"] for r in ok if r["motor_violations"] is not None]
+        out.append({
+            "planner": planner, "instrument": instrument, "n": n, "kind": kind, "runs": len(group), "errors": len(group) - len(ok),
+            "segments_median": float(np.median(segments)) if len(segments) else None,
+            "segments_p95": float(np.percentile(segments, 95)) if len(segments) else None,
+            "segments_max": int(segments.max()) if len(segments) else None,
+            "verified_first_pass": sum(r["first_pass_verified"] for r in ok) / len(group),
+            "verified_exported": sum(bool(r["verified_ok"]) for r in ok) / len(group),
+            "runs_with_motor_violations": sum(v > 0 for v in violations) if violations else None,
+            "motor_violations_total": sum(violations) if violations else None,
+            "makespan_increase_median": float(np.median(increase)) if increase else None,
+            "discretise_over_plan_median": float(np.median(share)) if share else None,
+            "discretise_s_median": float(np.median([r["discretise_s"] for r in ok])) if ok else None,
+            "plan_wall_s_median": float(np.median([r["plan_wall_s"] for r in group])),
+        })
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--full", action="store_true", help="The issue's sets (hours) instead of the quick ones.")
+    args = parser.parse_args()
+    sets = FULL if args.full else QUICK
+    total = sum(len(seeds) for *_, seeds in sets)
+    rows: list[dict] = []
+    meta = {"benchmark": "profiles", "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "machine": machine_info(),
+            "sets": [[p, i, n, k, [min(s), max(s)]] for p, i, n, k, s in sets]}
+    for planner, instrument, n, kind, seeds in sets:
+        for seed in seeds:
+            rows.append(measure(planner, instrument, n, kind, seed))
+            last = rows[-1]
+            figures = last.get("error") or (f"segments max {last['segments_max']}, violations {last['motor_violations']}, "
+                                            f"{last['discretise_s']:.2f} s / plan {last['plan_wall_s']:.1f} s")
+            print(f"[{len(rows)}/{total}] {planner} {instrument} {n} {kind} seed {seed}: {figures}", flush=True)
+            tmp = args.out.with_suffix(".tmp")
+            tmp.write_text(json.dumps(meta | {"aggregates": aggregate(rows), "rows": rows}, indent=1))
+            tmp.replace(args.out)
+
+
+if __name__ == "__main__":
+    main()
