@@ -263,3 +263,15 @@ def test_cli_refuses_an_unknown_extension_before_work(moons_run, tmp_path, capsy
     code, _, err = _run(["profiles", str(run), "--out", str(tmp_path / "p.txt")], capsys)
     assert code == 2 and "cannot tell the format" in err
     assert not (tmp_path / "p.txt").exists()
+
+
+def test_show_profiles_draws_a_picture_and_refuses_unknown_ids(moons_run, tmp_path, capsys):
+    run = tmp_path / "m.h5"
+    fp.save_result(moons_run, run)
+    ident = int(moons_run.scenario.ids[3])
+    code, out, _ = _run(["show", str(run), "--profiles", f"{ident},0", "--out", str(tmp_path / "p.png")], capsys)
+    assert code == 0 and "profiles verified: True" in out
+    assert (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"
+    code, _, err = _run(["show", str(run), "--profiles", "999", "--out", str(tmp_path / "q.png")], capsys)
+    assert code == 2 and "positioner(s) [999] not in" in err
+    assert not (tmp_path / "q.png").exists()

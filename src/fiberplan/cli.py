@@ -365,6 +365,26 @@ def verify(file: Path | None, as_json: bool, max_events: int, instrument: str | 
         sys.exit(1)
 
 
+def _show_profiles(result: Any, file: Path, out: Path, profile_ids: str, t: float | None) -> None:
+    """``fiberplan show --profiles``: discretise ``result`` and draw the chosen positioners."""
+    from fiberplan.plotting import plot_motor_profiles, save_figure
+    from fiberplan.profiles import discretise
+
+    if t is not None:
+        raise click.UsageError("--time draws a snapshot; --profiles draws whole profiles (give one of them)")
+    try:
+        ids = [int(text) for text in profile_ids.split(",") if text.strip()]
+    except ValueError as e:
+        raise click.BadParameter(f"expected positioner ids separated by commas (e.g. 3,17), found {profile_ids!r}", param_hint="--profiles") from e
+    unknown = sorted(set(ids) - set(result.scenario.ids.tolist()))
+    if not ids or unknown:
+        raise click.BadParameter(f"positioner(s) {unknown or profile_ids!r} not in {file} (ids {int(result.scenario.ids.min())}.."
+                                 f"{int(result.scenario.ids.max())})", param_hint="--profiles")
+    made = discretise(result)
+    save_figure(plot_motor_profiles(result, made, ids), out)
+    click.echo(f"wrote {out} (positioners {', '.join(map(str, ids))}; profiles verified: {made.report is not None and made.report.ok})")
+
+
 def _paths_run(paths_file: Path, scenario_file: Path | None) -> Any:
     """A plan result from exported profiles or foreign time-stamped paths (outcomes from where they end)."""
     import numpy as np
@@ -428,14 +448,20 @@ def profiles(run_file: Path, out: Path, form: str | None, fraction: float, as_js
 @click.argument("file", type=PATH)
 @click.option("--out", type=PATH, required=True, help="PNG (or PDF/SVG) to write.")
 @click.option("--time", "t", type=click.FloatRange(min=0.0), default=None, help="Instant to draw (s); default the first collision, else the end.")
-def show(file: Path, out: Path, t: float | None) -> None:
-    """Draw a snapshot of a run: arms, capsules, targets, collisions in red."""
+@click.option("--profiles", "profile_ids", default=None, metavar="ID,ID",
+              help="Draw these positioners' planned joint profiles against their motor profiles instead (made from FILE).")
+def show(file: Path, out: Path, t: float | None, profile_ids: str | None) -> None:
+    """Draw a snapshot of a run: arms, capsules, targets, collisions in red; or, with --profiles,
+    chosen positioners' planned angles and speeds against their motor profiles."""
     check_output_path(out, what="--out", suffixes=IMAGE_SUFFIXES, inputs=[file])
     from fiberplan.plotting import default_snapshot_time, save_snapshot
     from fiberplan.trajectory import load_result
     from fiberplan.verify import verify as run_verify
 
     result = load_result(file)
+    if profile_ids is not None:
+        _show_profiles(result, file, out, profile_ids, t)
+        return
     if t is None:
         report = run_verify(result.scenario, result.trajectory)
         t = default_snapshot_time(result, [c.t_first_s for c in report.collisions])

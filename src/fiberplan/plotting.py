@@ -228,6 +228,55 @@ def plot_joint_profiles(result: PlanResult, ids: list[int] | None = None, *, max
     return fig
 
 
+def plot_motor_profiles(result: PlanResult, profiles: Any, ids: list[int] | None = None, *, max_positioners: int = 3) -> Figure:
+    """Planned samples (thin) against their motor profiles (thick): joint angles and speeds of
+    chosen positioners (as reference 004, fig. 11.10), the instrument's speed range shaded.
+
+    Args:
+        result: the planned run the profiles were made from.
+        profiles: :class:`fiberplan.profiles.Profiles` of ``result``.
+        ids: positioner ids to draw; default the ``max_positioners`` with the most segments.
+        max_positioners: how many to pick when ``ids`` is not given.
+    """
+    scenario, traj = result.scenario, result.trajectory
+    if ids is None:
+        rows = np.argsort(-profiles.segment_counts().sum(axis=1), kind="stable")[:max_positioners]
+    else:
+        rows = np.array([scenario.index_of(i) for i in ids])
+    fig, axes = plt.subplots(2, 2, figsize=(11, 6.5), sharex=True)
+    speed = np.diff(traj.joints, axis=0) / np.diff(traj.times)[:, None, None]
+    inst = scenario.instrument
+    top = inst.speeds_rad_s
+    low = inst.motors.min_speed_rad_s
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for col, joint in enumerate(("alpha", "beta")):
+        for n, row in enumerate(rows):
+            colour = colours[n % len(colours)]
+            axes[0, col].plot(traj.times, np.degrees(traj.joints[:, row, col]), color=colour, lw=0.8, alpha=0.6)
+            axes[1, col].step(traj.times[:-1], np.degrees(speed[:, row, col]), where="post", color=colour, lw=0.8, alpha=0.6)
+            prof = profiles.joints.get((int(row), col))
+            count = 0 if prof is None else len(prof.durations_s)
+            label = f"positioner {scenario.ids[row]}: {count} segment{'s' if count != 1 else ''}"
+            if prof is None:
+                axes[0, col].plot([], [], color=colour, lw=2.2, ls="--", label=label)
+                continue
+            t_knot, q_knot = prof.knots()
+            axes[0, col].plot(t_knot, np.degrees(q_knot), color=colour, lw=2.2, ls="--", marker="o", ms=3, label=label)
+            axes[1, col].step(t_knot, np.degrees(np.append(prof.speeds_rad_s, 0.0)), where="post", color=colour, lw=2.2, ls="--")
+        for sign in (-1, 1):
+            axes[1, col].axhline(sign * np.degrees(top[col]), color="#999999", lw=0.8, ls="--")
+            if low is not None:
+                axes[1, col].axhspan(0, sign * np.degrees(low[col]), color="#dddddd", zorder=0)
+        axes[0, col].set_ylabel(f"{joint} [deg]")
+        axes[1, col].set_ylabel(f"{joint} speed [deg/s]")
+        axes[1, col].set_xlabel("time [s]")
+        axes[0, col].legend(fontsize=7)
+    fig.suptitle(f"{result.planner} | {inst.name} | planned samples (thin) and motor profiles (dashed)"
+                 f"{'; grey: below the minimum speed' if low is not None else ''}", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
 # ------------------------------------------------------------------------------ study plots
 
 
