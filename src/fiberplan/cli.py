@@ -365,6 +365,32 @@ def verify(file: Path | None, as_json: bool, max_events: int, instrument: str | 
         sys.exit(1)
 
 
+def _scenario_on_layout(ctx: click.Context, instrument: str, kind: str, seed: int, layout_file: Path, targets_file: Path | None, out: Path) -> None:
+    """``fiberplan scenario --layout``: targets from a table (everyone starts at the datum), or drawn (--kind, --seed)."""
+    from fiberplan.generate import make_scenario
+    from fiberplan.layout_io import scenario_dict_from_tables
+    from fiberplan.scenario import scenario_from_dict
+
+    ignored = _explicit(ctx, "positioners", "radius_mm")
+    if ignored:
+        raise click.UsageError(f"{', '.join(ignored)} cannot be used with --layout (the layout gives the positioners)")
+    inst, preset, used = _instrument_arg(instrument)
+    if targets_file is not None:
+        drawn = _explicit(ctx, "kind", "seed")
+        if drawn:
+            raise click.UsageError(f"{', '.join(drawn)} cannot be used with --targets (the targets come from the table)")
+        sc = scenario_from_dict(scenario_dict_from_tables((inst, preset), layout_file, targets_file), origin=f"layout {str(layout_file)!r}")
+    else:
+        sc = make_scenario(inst, None, kind, seed, layout=layout_file, instrument_preset=preset)
+    if sc.infeasible:
+        _warn([f"{len(sc.infeasible)} target(s) cannot be reached at all (they will hold): "
+               + "; ".join(f"positioner {sc.ids[k]}: {why}" for k, why in list(sc.infeasible.items())[:10])])
+    sc.save(out)
+    click.echo(f"wrote {out} ({sc.n_positioners} positioners from {layout_file}, {int(sc.wants_target.sum())} targets, "
+               f"{int(sc.locked.sum())} locked, {'targets from ' + str(targets_file) if targets_file else f'{sc.kind}, seed {sc.seed}'}, "
+               f"instrument {used})")
+
+
 def _show_profiles(result: Any, file: Path, out: Path, profile_ids: str, t: float | None) -> None:
     """``fiberplan show --profiles``: discretise ``result`` and draw the chosen positioners."""
     from fiberplan.plotting import plot_motor_profiles, save_figure
@@ -492,18 +518,28 @@ def animate(file: Path, out: Path, fps: int, frames: int) -> None:
 @click.option("--kind", default="random", show_default=True, help="random, unfold, fold or clustered.")
 @click.option("--seed", default=0, show_default=True, type=SEED)
 @click.option("--paf", "paf_file", type=PATH, default=None, help="Build the scenario from this ESO PAF fibre positioner configuration (MOONS).")
-@click.option("--targets", "targets_file", type=PATH, default=None, help="With --paf: a target list 'id r_mm theta_deg L|R [priority]'.")
+@click.option("--layout", "layout_file", type=PATH, default=None,
+              help="Your focal plane: a CSV/ECSV table 'id, x_mm, y_mm, orient_deg[, locked]' (with --targets, or --kind and --seed).")
+@click.option("--targets", "targets_file", type=PATH, default=None,
+              help="With --paf: a target list 'id r_mm theta_deg L|R [priority]'; with --layout: a CSV/ECSV table "
+                   "'id, x_mm, y_mm[, parity][, priority]' or 'id, alpha_deg, beta_deg[, priority]'.")
 @click.option("--out", type=PATH, required=True, help="Scenario JSON file to write.")
 @click.pass_context
 def scenario(
     ctx: click.Context, instrument: str, positioners: int, radius_mm: float | None, kind: str, seed: int, paf_file: Path | None,
-    targets_file: Path | None, out: Path,
+    layout_file: Path | None, targets_file: Path | None, out: Path,
 ) -> None:
-    """Generate a seeded scenario, or read an instrument's PAF file and target list, and write it as JSON."""
-    check_output_path(out, what="--out", suffixes=JSON_SUFFIXES, inputs=[paf_file, targets_file])
+    """Generate a seeded scenario (on a hexagonal patch, or on your layout table), or read a layout
+    and target table, or an instrument's PAF file and target list, and write it as JSON."""
+    check_output_path(out, what="--out", suffixes=JSON_SUFFIXES, inputs=[paf_file, layout_file, targets_file])
+    if paf_file is not None and layout_file is not None:
+        raise click.UsageError("give --paf or --layout, not both (each gives the positioners)")
+    if layout_file is not None:
+        _scenario_on_layout(ctx, instrument, kind, seed, layout_file, targets_file, out)
+        return
     if paf_file is None:
         if targets_file is not None:
-            raise click.UsageError("--targets needs --paf (the positioners the targets belong to)")
+            raise click.UsageError("--targets needs --paf or --layout (the positioners the targets belong to)")
         from fiberplan.generate import make_scenario
 
         inst, preset, used = _instrument_arg(instrument)

@@ -172,8 +172,9 @@ def make_scenario(
     clusters: int | None = None,
     cluster_fraction: float = 0.8,
     instrument_preset: str | None = None,
+    layout: Any = None,
 ) -> Scenario:
-    """Generate a seeded scenario on a hexagonal patch (or a full focal plane by radius).
+    """Generate a seeded scenario on a hexagonal patch, a full focal plane by radius, or a given layout.
 
     Args:
         instrument: preset name, instrument file path, or :class:`Instrument`.
@@ -187,6 +188,10 @@ def make_scenario(
             (0: uniform targets, close to 1: crowded clusters); a knob for target density.
         instrument_preset: the preset name of an :class:`Instrument` given as an object (files
             then store the name instead of the table).
+        layout: a :class:`fiberplan.layout_io.Layout` or the path of a layout table (CSV/ECSV:
+            ``id, x_mm, y_mm, orient_deg[, locked]``): its positioners, ids and orientations
+            replace the patch (``n_positioners`` and ``radius_mm`` are then ignored); locked
+            positioners keep their drawn start and get no target.
 
     Raises:
         ScenarioError: unknown kind, bad size, or no collision-free configuration found.
@@ -207,7 +212,14 @@ def make_scenario(
     if radius_mm is None and (isinstance(n_positioners, bool) or not isinstance(n_positioners, (int, np.integer, type(None)))):
         raise ScenarioError(f"n_positioners must be an integer, found {n_positioners!r}")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    if radius_mm is not None:
+    if layout is not None:
+        from fiberplan.layout_io import Layout, read_layout
+
+        table = layout if isinstance(layout, Layout) else read_layout(layout)
+        if random_orientation:
+            raise ScenarioError("random_orientation cannot be used with a layout (the layout gives the orientations)")
+        base = table.base_xy
+    elif radius_mm is not None:
         base = focal_plane(radius_mm, inst.pitch_mm)
     else:
         if n_positioners is None:
@@ -215,6 +227,8 @@ def make_scenario(
         base = hex_patch(n_positioners, inst.pitch_mm)
     n = len(base)
     orient = rng.uniform(-np.pi, np.pi, n) if random_orientation else np.zeros(n)
+    if layout is not None:
+        orient = np.radians(table.orient_deg)
     pairs = neighbour_pairs(inst, base)
     datum = np.broadcast_to(np.array(inst.datum_rad), (n, 2)).copy()
 
@@ -233,7 +247,27 @@ def make_scenario(
         target = random_configuration(inst, base, orient, pairs, rng)
 
     seed_value = None if isinstance(seed, np.random.Generator) else int(seed)
-    return joint_scenario(inst, base, orient, start, target, kind=kind, seed=seed_value, instrument_preset=preset)
+    made = joint_scenario(inst, base, orient, start, target, kind=kind, seed=seed_value, instrument_preset=preset)
+    if layout is None:
+        return made
+    return _on_layout(made, table)
+
+
+def _on_layout(made: Scenario, table: Any) -> Scenario:
+    """``made`` (generated on the layout's bases) with the layout's ids and locks; locked
+    positioners hold their drawn start (a target that then collides with one is reported
+    infeasible, naming it)."""
+    from fiberplan.scenario import scenario_from_dict
+
+    data = made.to_dict()
+    for row, ident, locked in zip(data["positioners"], table.ids.tolist(), table.locked.tolist(), strict=True):
+        row["id"] = ident
+        if locked:
+            row["locked"] = True
+            row["target"] = None
+    data["name"] = f"{made.instrument.name}-{table.name}-{made.kind}-seed{made.seed}"
+    data["meta"] = dict(data.get("meta") or {}) | {"layout": table.origin}
+    return scenario_from_dict(data, origin=table.origin)
 
 
 def joint_scenario(

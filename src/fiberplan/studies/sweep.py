@@ -400,7 +400,10 @@ def _dask_results(
     """Run tasks on a Dask cluster. A lost worker's runs are re-run by Dask (``retries`` times);
     a run still lost becomes a ``lost`` row. With no live worker for ``no_worker_timeout_s``
     the sweep stops: :class:`InfrastructureError` (every finished row is kept)."""
-    from dask.distributed import Client
+    try:
+        from dask.distributed import Client
+    except ImportError as e:
+        raise InfrastructureError('a Dask scheduler needs the study extra: python -m pip install "fiberplan[study]"') from e
 
     try:
         client = Client(scheduler, timeout=min(30.0, no_worker_timeout_s))
