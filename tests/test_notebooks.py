@@ -33,3 +33,6 @@ def test_notebook_executes_at_small_size(path, tmp_path):
     injected = "\n".join(f"{name} = {value!r}" for name, value in overrides.items())
     nb.cells.insert(index + 1, nbformat.v4.new_code_cell(injected))
     NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
+    draws = any("plot_" in cell.source or "plt." in cell.source for cell in nb.cells if cell.cell_type == "code")
+    shown = sum("image/png" in output.get("data", {}) for cell in nb.cells for output in cell.get("outputs", []))
+    assert shown > 0 or not draws, f"{path.name} draws figures but shows none inline (a forced non-interactive backend?)"

@@ -1,17 +1,23 @@
 """Pictures of positioners: snapshots of arms, capsules and targets, and animations of runs.
 
-Everything draws on matplotlib axes (``Agg`` is enough; no screen is needed). Colliding
-positioners are drawn in red.
+Everything draws on matplotlib axes (``Agg`` is enough; no screen is needed, and it is chosen
+only when no backend is: notebooks show their figures inline). Colliding positioners are drawn
+in red.
 """
 
 from __future__ import annotations
 
+import os
+import sys
 from pathlib import Path
 from typing import Any
 
 import matplotlib
 
-matplotlib.use("Agg")
+# A non-interactive backend only where nobody chose one: Jupyter (ipykernel sets MPLBACKEND to
+# its inline backend) and a user's own choice keep theirs, so figures show in notebooks.
+if "MPLBACKEND" not in os.environ and "ipykernel" not in sys.modules and "matplotlib.pyplot" not in sys.modules:
+    matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt
 import numpy as np
