@@ -133,3 +133,13 @@ def test_verify_bad_files(tmp_path):
     junk = tmp_path / "junk.h5"
     junk.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\x00" * 50)
     assert_clean_error(run("verify", junk), "cannot read trajectory file")
+
+
+def test_plan_reports_its_time_split(tmp_path, capsys):
+    from fiberplan.cli import main
+
+    main(["plan", "--instrument", "desi", "-n", "7", "--seed", "1", "--json", "-q", "--out", str(tmp_path / "r.h5")])
+    summary = json.loads(capsys.readouterr().out)
+    assert set(summary["time_split_s"]) == {"plan", "verify", "write"}
+    assert all(v >= 0 for v in summary["time_split_s"].values())
+    assert summary["time_split_s"]["plan"] <= summary["plan_wall_s"] + 1.0

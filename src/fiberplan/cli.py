@@ -14,6 +14,7 @@ import json
 import math
 import os
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -230,23 +231,39 @@ def plan(
     settings_class(planner)  # an unknown planner is refused before the scenario is built
     scenario, instrument_used = _build_scenario(ctx, scenario_file, instrument, positioners, radius_mm, scenario_kind, seed)
     planner_settings = make_settings(planner, scenario, overrides)
-    bar = tqdm(total=1000, desc=f"{planner} x {scenario.n_positioners}", unit="‰", disable=True if quiet else None, file=sys.stderr, leave=False)
+    # The planners report the share of their step budget used, an upper bound on the work left,
+    # so the bar shows the phase, the percentage and the time spent, not a remaining-time guess.
+    bar = tqdm(total=100, desc=f"{planner} x {scenario.n_positioners}: planning", disable=True if quiet else None, file=sys.stderr,
+               leave=False, bar_format="{desc} {percentage:3.0f}% of the step budget |{bar}| {elapsed}")
 
     def progress(fraction: float) -> None:
-        bar.update(max(0, int(1000 * min(fraction, 1.0)) - bar.n))
+        bar.update(max(0, int(100 * min(fraction, 1.0)) - bar.n))
 
+    started = time.perf_counter()
     try:
         result = run_planner(scenario, planner, planner_settings, progress=progress)
     finally:
         bar.close()
+    split = {"plan": time.perf_counter() - started}
+    live = not quiet and sys.stderr.isatty()
+    if not no_verify and live:
+        click.echo(f"{planner} x {scenario.n_positioners}: verifying...", err=True, nl=False)
+    started = time.perf_counter()
     report = None if no_verify else run_verify(scenario, result.trajectory)
+    if not no_verify:
+        split["verify"] = time.perf_counter() - started
+        if live:
+            click.echo("\r" + " " * 60 + "\r", err=True, nl=False)
     summary = summarize(result, report)
     summary["instrument_source"] = instrument_used
     if report is None:
         summary["collisions"] = None
     if out is not None:
+        started = time.perf_counter()
         save_result(result, out)
+        split["write"] = time.perf_counter() - started
         summary["out"] = str(out)
+    summary["time_split_s"] = {phase: round(seconds, 3) for phase, seconds in split.items()}
     if picture is not None:
         from fiberplan.plotting import default_snapshot_time, save_snapshot
 
@@ -258,7 +275,9 @@ def plan(
         click.echo(json.dumps(_json_ready(summary)))
     else:
         click.echo(f"fiberplan plan: {scenario.name or scenario.kind}")
-        _print_table(summary, (*_SUMMARY_KEYS, "instrument_source", *(k for k in ("out", "picture") if k in summary)))
+        keys = (*_SUMMARY_KEYS, "instrument_source", *(k for k in ("out", "picture") if k in summary))
+        _print_table(summary | {"time_split_s": ", ".join(f"{phase} {seconds:.2f} s" for phase, seconds in summary["time_split_s"].items())},
+                     (*keys, "time_split_s"))
         _print_not_reached(summary)
     if scenario.infeasible:
         _warn([f"{len(scenario.infeasible)} target(s) cannot be reached at all and were not planned (they hold): "
