@@ -275,3 +275,20 @@ def test_show_profiles_draws_a_picture_and_refuses_unknown_ids(moons_run, tmp_pa
     code, _, err = _run(["show", str(run), "--profiles", "999", "--out", str(tmp_path / "q.png")], capsys)
     assert code == 2 and "positioner(s) [999] not in" in err
     assert not (tmp_path / "q.png").exists()
+
+
+def test_profiles_the_verifier_refuses_are_fitted_again_then_follow_their_samples(desi_random_61, monkeypatch):
+    """With the room ignored (corridors only bounded by the hard stops), the first profiles cut
+    corners through neighbours; the verifier's objections narrow them, then make those
+    positioners follow their planned samples: what is returned is verified all the same."""
+    from fiberplan import profiles as module
+
+    run = fp.plan(desi_random_61, "mpc")
+    unbounded = lambda self, i, *rest: np.full(self.shared.shape[0], np.inf)  # noqa: E731
+    monkeypatch.setattr(module._Room, "half", unbounded)
+    monkeypatch.setattr(module._Room, "left", unbounded)
+    made = fp.discretise(run)
+    summary = made.summary()
+    assert made.report.ok and made.report.n_collisions == 0
+    assert summary["refit_rounds"] >= 1
+    assert summary["followed_samples"], "expected positioners to fall back to their planned samples"

@@ -207,57 +207,89 @@ def discretise_trajectory(
             "run `fiberplan verify` on it"
         )
     times, joints = trajectory.times, trajectory.joints
-    step = _period_steps(inst.motors, times)
-    room = _Room(inst, scenario, joints, fraction)
-    fits: dict[tuple[int, int], JointProfile] = {}
-    relaxed = np.zeros(scenario.n_positioners, dtype=int)
-    for i in range(scenario.n_positioners):  # first pass: half of each pair's room
-        relaxed[i] = _fit_positioner(inst, times, joints[:, i], room.half(i), step, fits, i, room)
-    for _ in range(REFIT_PASSES):  # then those that break a motor limit, in the room their neighbours leave
-        for i in np.argsort(-relaxed, kind="stable")[: np.count_nonzero(relaxed)].tolist():
-            relaxed[i] = _refit_positioner(inst, times, joints[:, i], room.left(i, max(fraction, REFIT_FRACTION)), step, fits, i, room)
-    for i in np.flatnonzero(relaxed).tolist():  # last: the neighbours make room
-        for j in room.neighbours(i).tolist():
-            kept = {key: fits[key] for key in ((j, 0), (j, 1)) if key in fits}
-            if relaxed[j] or not kept or _fit_positioner(inst, times, joints[:, j], room.half(j) * NARROWING, step, fits, j, room):
-                for axis in (0, 1):
-                    fits.pop((j, axis), None)
-                fits.update(kept)
-                room.record(j, fits, times, joints[:, j])
-        relaxed[i] = _refit_positioner(inst, times, joints[:, i], room.left(i, max(fraction, REFIT_FRACTION)), step, fits, i, room)
+    fitter = _Fitter(inst, times, joints, _period_steps(inst.motors, times), _Room(inst, scenario, joints, fraction))
+    fitter.fit_all(fraction)
     followed: list[int] = []
     rounds = 0
-    narrow = np.ones(scenario.n_positioners)
     while True:
-        profiles = Profiles(scenario, dict(sorted(fits.items())))
+        profiles = Profiles(scenario, dict(sorted(fitter.fits.items())))
         report = verify(scenario, profiles.trajectory(), instrument=inst)
         if report.ok:
             break
-        hit = np.unique([scenario.index_of(e.id_i) for e in report.collisions] + [scenario.index_of(e.id_j) for e in report.collisions])
-        if rounds > REFIT_ROUNDS or len(hit) == 0:
-            bad = sorted({int(scenario.ids[i]) for i in hit} | {v.positioner_id for v in report.limit_violations})
-            raise ProfileError(f"the profiles of positioners {bad} could not be verified, even on their planned samples; nothing exported")
+        named = {e.id_i for e in report.collisions} | {e.id_j for e in report.collisions} | {v.positioner_id for v in report.limit_violations}
+        if rounds > REFIT_ROUNDS or not named:
+            raise ProfileError(f"the profiles of positioners {sorted(named)} could not be verified, even on their planned samples; "
+                               "nothing exported")
         rounds += 1
-        for i in hit.tolist():
+        for ident in sorted(named):
             if rounds > REFIT_ROUNDS:
-                _follow_samples(times, joints[:, i], fits, i)
-                room.record(i, fits, times, joints[:, i])
-                followed.append(int(scenario.ids[i]))
+                fitter.follow(scenario.index_of(ident))
+                followed.append(ident)
             else:
-                narrow[i] *= NARROWING
-                relaxed[i] = _fit_positioner(inst, times, joints[:, i], room.half(i) * narrow[i], step, fits, i, room)
+                fitter.narrow(scenario.index_of(ident))
     rebuilt = profiles.trajectory()
     stats = {
         "limits": limits_applied(inst),
         "fraction": fraction,
         "refit_rounds": rounds,
         "followed_samples": sorted(set(followed)),
-        "relaxed_segments": int(relaxed.sum()),
+        "relaxed_segments": int(fitter.relaxed.sum()),
         "makespan_before_s": _makespan(times, joints),
         "makespan_after_s": _makespan(rebuilt.times, rebuilt.joints),
         "discretise_s": time.perf_counter() - started,
     }
     return Profiles(scenario, profiles.joints, report, stats)
+
+
+class _Fitter:
+    """The profiles of every positioner as they are fitted, and the passes that fit them
+    (``fits``: ``(positioner, joint) -> JointProfile``; ``relaxed``: per positioner, the
+    segments that break a motor limit)."""
+
+    def __init__(self, inst: Instrument, times: np.ndarray, joints: np.ndarray, step: int, room: _Room) -> None:
+        self.inst, self.times, self.joints, self.step, self.room = inst, times, joints, step, room
+        self.fits: dict[tuple[int, int], JointProfile] = {}
+        self.relaxed = np.zeros(joints.shape[1], dtype=int)
+        self.narrowing = np.ones(joints.shape[1])
+
+    def _fit(self, i: int, budget: np.ndarray) -> int:
+        return _fit_positioner(self.inst, self.times, self.joints[:, i], budget, self.step, self.fits, i, self.room)
+
+    def _refit(self, i: int, fraction: float) -> None:
+        budget = self.room.left(i, max(fraction, REFIT_FRACTION))
+        self.relaxed[i] = _refit_positioner(self.inst, self.times, self.joints[:, i], budget, self.step, self.fits, i, self.room)
+
+    def fit_all(self, fraction: float) -> None:
+        """First every positioner in half of each pair's room; then those that break a motor
+        limit in the room their neighbours leave; last, for those still short, the neighbours
+        make room (each fitted in a quarter of its half, kept only if it breaks no limit)."""
+        for i in range(self.joints.shape[1]):
+            self.relaxed[i] = self._fit(i, self.room.half(i))
+        for _ in range(REFIT_PASSES):
+            for i in np.argsort(-self.relaxed, kind="stable")[: np.count_nonzero(self.relaxed)].tolist():
+                self._refit(i, fraction)
+        for i in np.flatnonzero(self.relaxed).tolist():
+            for j in self.room.neighbours(i).tolist():
+                kept = {key: self.fits[key] for key in ((j, 0), (j, 1)) if key in self.fits}
+                if self.relaxed[j] or not kept or self._fit(j, self.room.half(j) * NARROWING):
+                    self._restore(j, kept)
+            self._refit(i, fraction)
+
+    def _restore(self, i: int, kept: dict[tuple[int, int], JointProfile]) -> None:
+        for axis in (0, 1):
+            self.fits.pop((i, axis), None)
+        self.fits.update(kept)
+        self.room.record(i, self.fits, self.times, self.joints[:, i])
+
+    def narrow(self, i: int) -> None:
+        """Fit positioner ``i`` again in a corridor ``NARROWING`` times narrower than its last."""
+        self.narrowing[i] *= NARROWING
+        self.relaxed[i] = self._fit(i, self.room.half(i) * self.narrowing[i])
+
+    def follow(self, i: int) -> None:
+        """Positioner ``i`` follows its planned samples."""
+        _follow_samples(self.times, self.joints[:, i], self.fits, i)
+        self.room.record(i, self.fits, self.times, self.joints[:, i])
 
 
 def _makespan(times: np.ndarray, joints: np.ndarray) -> float:
