@@ -1,5 +1,6 @@
 """mkdocs hook: the README becomes the home page and formulations/ a section, read from where
-they live in the repository (no copies to keep in step), with the result pictures; their
+they live in the repository (no copies to keep in step), with the result pictures (the
+notebooks come in through the symbolic link docs/notebooks, for mkdocs-jupyter to see them); their
 repository-relative links are rewritten to the site's pages."""
 
 from __future__ import annotations

@@ -19,3 +19,6 @@ def test_mkdocs_build_strict(tmp_path):
     api = (tmp_path / "site" / "api" / "profiles" / "index.html").read_text()
     assert "discretise_trajectory" in api and "JointProfile" in api
     assert (tmp_path / "site" / "formulations" / "profiles" / "index.html").is_file()
+    for notebook in sorted((ROOT / "notebooks").glob("*.ipynb")):  # rendered with their stored figures
+        page = (tmp_path / "site" / "notebooks" / notebook.stem / "index.html").read_text()
+        assert "data:image/png" in page, f"{notebook.name} shows no figure on the site (run benchmarks/execute_notebooks.py)"
