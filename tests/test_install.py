@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-COMMANDS = ("plan", "verify", "profiles", "show", "animate", "scenario", "instruments", "planners", "compare", "sweep", "study-plot")
+COMMANDS = ("plan", "verify", "profiles", "view", "show", "animate", "scenario", "instruments", "planners", "compare", "sweep", "study-plot")
 
 
 @pytest.mark.slow

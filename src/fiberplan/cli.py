@@ -516,6 +516,26 @@ def show(file: Path, out: Path, t: float | None, profile_ids: str | None) -> Non
 
 @cli.command()
 @click.argument("file", type=PATH)
+@click.option("--out", type=PATH, required=True, help="HTML page to write (self-contained: open it in any browser, offline).")
+def view(file: Path, out: Path) -> None:
+    """Write an interactive viewer of a run: the focal plane with a time slider and play/pause,
+    positioners coloured by outcome, hover/click for id, outcome and reason, search by id, the
+    verifier's collisions and limit violations in red, a clicked positioner's joint angles."""
+    check_output_path(out, what="--out", suffixes=(".html", ".htm"), inputs=[file])
+    from fiberplan.trajectory import load_result
+    from fiberplan.verify import verify as run_verify
+    from fiberplan.viewer import frame_indices, write_viewer
+
+    result = load_result(file)
+    report = run_verify(result.scenario, result.trajectory)
+    write_viewer(result, report, out)
+    frames = len(frame_indices(len(result.trajectory.times), result.scenario.n_positioners))
+    click.echo(f"wrote {out} ({result.scenario.n_positioners} positioners, {frames} of {len(result.trajectory.times)} samples as frames, "
+               f"{out.stat().st_size / 1e6:.1f} MB; verified: {report.ok})")
+
+
+@cli.command()
+@click.argument("file", type=PATH)
 @click.option("--out", type=PATH, required=True, help="GIF (or MP4 with ffmpeg) to write.")
 @click.option("--fps", default=20, show_default=True, type=click.IntRange(1, 240), help="Frames per second.")
 @click.option("--frames", default=120, show_default=True, type=click.IntRange(2, 10_000), help="Largest number of frames.")
