@@ -143,3 +143,21 @@ def test_plan_reports_its_time_split(tmp_path, capsys):
     assert set(summary["time_split_s"]) == {"plan", "verify", "write"}
     assert all(v >= 0 for v in summary["time_split_s"].values())
     assert summary["time_split_s"]["plan"] <= summary["plan_wall_s"] + 1.0
+
+
+def test_progress_names_the_phases_and_one_argument_callbacks_still_work():
+    import fiberplan as fp
+
+    scenario = fp.make_scenario("desi", 19, "random", 2)
+    seen: list[tuple[float, str | None]] = []
+    fp.plan(scenario, "mpc", progress=lambda fraction, phase=None: seen.append((fraction, phase)))
+    phases = {phase for _, phase in seen if phase}
+    assert "planner run 1: start schedule" in phases and "planner run 1: control loop" in phases
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    direct: list[tuple[float, str | None]] = []
+    fp.plan(scenario, "mpc", {"route": "direct"}, progress=lambda fraction, phase=None: direct.append((fraction, phase)))
+    assert {"start schedule", "control loop"} <= {phase for _, phase in direct}
+    plain: list[float] = []
+    fp.plan(scenario, "dnf", progress=plain.append)
+    assert plain and plain[-1] == 1.0

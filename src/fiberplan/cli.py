@@ -231,12 +231,14 @@ def plan(
     settings_class(planner)  # an unknown planner is refused before the scenario is built
     scenario, instrument_used = _build_scenario(ctx, scenario_file, instrument, positioners, radius_mm, scenario_kind, seed)
     planner_settings = make_settings(planner, scenario, overrides)
-    # The planners report the share of their step budget used, an upper bound on the work left,
-    # so the bar shows the phase, the percentage and the time spent, not a remaining-time guess.
+    # The planners report the share of their step budget used (an upper bound on the work left)
+    # and their phase; the bar shows both and the time spent, not a remaining-time guess.
     bar = tqdm(total=100, desc=f"{planner} x {scenario.n_positioners}: planning", disable=True if quiet else None, file=sys.stderr,
-               leave=False, bar_format="{desc} {percentage:3.0f}% of the step budget |{bar}| {elapsed}")
+               leave=False, bar_format="{desc} {percentage:3.0f}% |{bar}| {elapsed}")
 
-    def progress(fraction: float) -> None:
+    def progress(fraction: float, phase: str | None = None) -> None:
+        if phase is not None:
+            bar.set_description_str(f"{planner} x {scenario.n_positioners}: {phase}", refresh=False)
         bar.update(max(0, int(100 * min(fraction, 1.0)) - bar.n))
 
     started = time.perf_counter()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import inspect
 import time
 from collections.abc import Callable, Mapping
 from typing import Any, Protocol, cast
@@ -19,8 +20,32 @@ from fiberplan.instrument import Instrument
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult
 
-ProgressCallback = Callable[[float], None]
-"""Called with the fraction of the work done, in [0, 1]."""
+ProgressCallback = Callable[..., None]
+"""Called with the fraction of the work done, in [0, 1], and, if it takes a second argument, the
+phase (``"start schedule"``, ``"control loop"``, ``"planner run 2: control loop"``...)."""
+
+
+def phased(progress: Callable[..., None] | None) -> Callable[..., None] | None:
+    """``progress`` as a callback taking ``(fraction, phase=None)``: a one-argument callback gets
+    the fraction only."""
+    if progress is None:
+        return None
+    callback = progress
+    try:
+        parameters = list(inspect.signature(callback).parameters.values())
+    except (TypeError, ValueError):
+        parameters = []
+    positional = [p for p in parameters if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    takes_phase = len(positional) >= 2 or any(p.kind == p.VAR_POSITIONAL for p in parameters)
+
+    def report(fraction: float, phase: str | None = None) -> None:
+        if takes_phase:
+            callback(fraction, phase)
+        else:
+            callback(fraction)
+
+    return report
+
 
 _PLANNERS = PLANNERS
 
@@ -107,8 +132,10 @@ def plan(
         scenario: what to plan.
         planner: registry name (see :func:`planner_names`).
         settings: the planner's settings dataclass, or a mapping of overrides of its defaults.
-        progress: optional callback receiving the fraction done.
+        progress: optional callback receiving the fraction done (and the phase, if it takes
+            a second argument: :data:`ProgressCallback`).
     """
+    progress = phased(progress)
     func, settings_cls = _lookup(planner)
     if not isinstance(settings, settings_cls):
         settings = make_settings(planner, scenario, settings)
@@ -124,13 +151,14 @@ def plan(
 
         fallback = getattr(settings, "route_fallback_planner", None)
 
-        def plan_leg(leg: Scenario, time_limit_s: float | None = None, use_fallback: bool = False) -> PlanResult:
+        def plan_leg(leg: Scenario, time_limit_s: float | None = None, use_fallback: bool = False,
+                     progress: ProgressCallback | None = None) -> PlanResult:
             if use_fallback and fallback:
                 other_func, _ = _lookup(fallback)
                 other = dataclasses.replace(make_settings(fallback, leg, {"route": "direct"}), time_limit_s=time_limit_s)
-                return other_func(leg, other, None)
+                return other_func(leg, other, progress)
             leg_settings = direct if time_limit_s is None else dataclasses.replace(direct, time_limit_s=time_limit_s)
-            return func(leg, leg_settings, None)
+            return func(leg, leg_settings, progress)
 
         result = coordination.coordinate(scenario, planner, settings, plan_leg, t0, progress)
         if progress is not None:

@@ -249,7 +249,7 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
 
 
 def coordinate(
-    scenario: Scenario, planner: str, settings: Any, plan_leg: PlanLeg, wall0: float, progress: Callable[[float], None] | None = None,
+    scenario: Scenario, planner: str, settings: Any, plan_leg: PlanLeg, wall0: float, progress: Callable[..., None] | None = None,
 ) -> PlanResult:
     """Plan ``scenario`` along ``settings.route`` (see the package docstring).
 
@@ -259,8 +259,9 @@ def coordinate(
         settings: its settings (:class:`RouteSettings` fields, ``dt_s``, ``safety_margin_mm`` if any).
         plan_leg: plans one leg with this planner and ``route = direct``.
         wall0: ``time.perf_counter()`` when planning began.
-        progress: called after every planner run with a fraction that grows toward 1 (the
-            number of runs is not known beforehand).
+        progress: called as ``progress(fraction, phase)`` during every planner run; run ``k``
+            fills the fraction from ``1 - 2^(1-k)`` to ``1 - 2^-k`` (the number of runs is not
+            known beforehand); the phase names the run and the planner's own phase.
     """
     route, dt = settings.route, settings.dt_s
     candidates: dict[str, list[_Piece]] = {}
@@ -269,11 +270,15 @@ def coordinate(
     CHILD_RUNS.clear()
 
     def recorded(leg: Scenario, **kwargs: Any) -> PlanResult:
-        result = plan_leg(leg, **kwargs)
+        number, done = len(runs) + 1, 1.0 - 0.5 ** len(runs)
+
+        def inner(fraction: float, phase: str | None = None) -> None:  # each run fills half of what is left
+            if progress is not None:
+                progress(done + 0.5 ** number * fraction, f"planner run {number}" + (f": {phase}" if phase else ""))
+
+        result = plan_leg(leg, progress=inner, **kwargs)
         runs.append(result)
         RUN_LOG.append(dict(result.stats))
-        if progress is not None:
-            progress(1.0 - 0.5 ** len(runs))
         return result
 
     def consider(name: str, pieces: list[_Piece] | None) -> dict[str, Any]:

@@ -144,7 +144,7 @@ def plan_dnf(scenario: Scenario, settings: DnfSettings, progress: ProgressCallba
         stuck = (err > tol) & settled
         stuck_ever |= stuck
         if progress is not None and step_count % 50 == 0:
-            progress(min(1.0, step_count / max_steps))
+            progress(min(1.0, step_count / max_steps), "control loop")
         # Done when every positioner sits exactly on its target joints or cannot progress
         # (a reached one held off its exact target by a neighbour, or a deadlocked one).
         if np.all(np.all(q == target, axis=1) | settled):

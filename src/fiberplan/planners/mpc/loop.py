@@ -96,6 +96,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     check_step_budget("mpc", max_steps, h, limit_s)
 
     schedule_t0 = time.perf_counter()
+    if progress is not None and settings.start_schedule:
+        progress(0.0, "start schedule")
     schedule = start_schedule(scenario, step_rad, settings.margin_mm, settings.schedule_delay_steps, settings.schedule_slack,
                               l_paths=settings.schedule_l_paths, space_time=settings.schedule_space_time,
                               cell_steps=settings.schedule_cell_steps, repair=settings.schedule_repair) if settings.start_schedule else None
@@ -174,7 +176,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             q = q_next
             history.append(q.copy())
             if progress is not None and step % 20 == 0:
-                progress(min(1.0, step / max_steps))
+                progress(min(1.0, step / max_steps), "control loop")
     finally:
         executor.close()
     if progress is not None:
