@@ -34,11 +34,11 @@ QUICK = (
     ("dnf", "desi", 500, "random", range(10)),
     ("dnf", "moons-capsules", 61, "unfold", range(10)),
 )
-FULL = (
+FULL = (  # the quick sets first: a run stopped for time keeps them
     ("mpc", "desi", 500, "random", range(100)),
-    ("mpc", "moons", 61, "unfold", range(50)),
     ("mpc", "sdss", 547, "random", range(20)),
     ("dnf", "desi", 500, "random", range(100)),
+    ("mpc", "moons", 61, "unfold", range(50)),
 )
 
 
