@@ -19,6 +19,7 @@ from fiberplan.instrument import MotorLimits
 from fiberplan.instrument_io import instrument_from_dict, instrument_text
 from fiberplan.profile_io import read_paths, write_profiles
 from fiberplan.profiles import _allowed_speeds, _fit_joint, discretise_trajectory, rebuild
+from fiberplan.trajectory import Trajectory
 
 
 @pytest.fixture(scope="module")
@@ -292,3 +293,24 @@ def test_profiles_the_verifier_refuses_are_fitted_again_then_follow_their_sample
     assert made.report.ok and made.report.n_collisions == 0
     assert summary["refit_rounds"] >= 1
     assert summary["followed_samples"], "expected positioners to fall back to their planned samples"
+
+
+def test_verifier_counts_start_stop_cycles(moons_run):
+    """Reference 003's nSSC: a joint that starts from rest three times breaks max_start_stops = 2."""
+    spec = json.loads(json.dumps(moons_run.scenario.instrument.to_dict()))
+    spec["motors"]["max_start_stops"] = 2
+    inst = instrument_from_dict(spec, origin="test")
+    scenario = moons_run.scenario
+    times = np.arange(0, 3.0001, 0.05)
+    joints = np.repeat(scenario.start[None], len(times), axis=0)
+    ident = int(scenario.ids[0])
+    speed = 0.2
+    moves = (times > 0.2) & (times <= 0.5) | (times > 1.0) & (times <= 1.3) | (times > 2.0) & (times <= 2.3)
+    joints[:, 0, 0] = scenario.start[0, 0] + np.concatenate([[0.0], np.cumsum(np.where(moves[1:], speed * 0.05, 0.0))])
+    report = fp.verify(scenario, Trajectory(times, joints), instrument=inst)
+    found = [v for v in report.motor_violations if v.kind == "start_stops"]
+    assert [(v.positioner_id, v.joint, int(v.value), int(v.limit)) for v in found] == [(ident, "alpha", 3, 2)]
+    assert found[0].t_first_s == pytest.approx(2.0)
+    spec["motors"]["max_start_stops"] = 0
+    with pytest.raises(InstrumentError, match="max_start_stops must be an integer >= 1"):
+        instrument_from_dict(spec, origin="test")

@@ -105,6 +105,8 @@ def _motor_text(v: Any) -> str:
         what = f"changes speed by {v.value:.0%} between two commands (limit {v.limit:.0%})"
     elif v.kind == "reversal":
         what = f"reverses without stopping (a speed jump of {_deg(math.degrees(v.value))} deg/s)"
+    elif v.kind == "start_stops":
+        what = f"starts from rest {int(v.value)} times (limit {int(v.limit)})"
     else:
         what = f"has {int(v.value)} constant-speed segments (limit {int(v.limit)})"
     return f"positioner {v.positioner_id} {v.joint} {what} ({when})"

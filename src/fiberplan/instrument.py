@@ -136,6 +136,8 @@ class MotorLimits:
         stop_before_reversing: a joint must stop (a zero-speed command) before turning back.
         command_period_s: the controller's command period: every segment lasts a multiple of it
             (used by :mod:`fiberplan.profiles`).
+        max_start_stops: most start-stop cycles per joint in one move (reference 003's nSSC): a
+            joint may start moving from rest at most this many times.
     """
 
     min_speed_rad_s: tuple[float, float] | None = None
@@ -143,19 +145,20 @@ class MotorLimits:
     max_segments: int | None = None
     stop_before_reversing: bool = False
     command_period_s: float | None = None
+    max_start_stops: int | None = None
 
     def unstated(self) -> list[str]:
         """The limits not stated (unconstrained), by their file key."""
         given = {"min_speed_rpm": self.min_speed_rad_s, "max_speed_change": self.max_speed_change,
                  "max_segments": self.max_segments, "stop_before_reversing": self.stop_before_reversing or None,
-                 "command_period_s": self.command_period_s}
+                 "command_period_s": self.command_period_s, "max_start_stops": self.max_start_stops}
         return [key for key, value in given.items() if value is None]
 
     @property
     def stated(self) -> bool:
         """Whether any limit is given."""
         return (self.min_speed_rad_s is not None or self.max_speed_change is not None or self.max_segments is not None
-                or self.stop_before_reversing or self.command_period_s is not None)
+                or self.stop_before_reversing or self.command_period_s is not None or self.max_start_stops is not None)
 
 
 @dataclass(frozen=True)

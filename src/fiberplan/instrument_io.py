@@ -37,7 +37,8 @@ ZONE_KEYS = ("name", "arm", "shape", "vertices_mm", "from_mm", "to_mm", "width_m
 ZONE_SHAPES = ("polygon", "rectangle")
 INTERACTION_KEYS = ("pairs",)
 BETA_CONVENTIONS = ("extended", "folded")
-MOTOR_KEYS = ("min_speed_rpm", "max_speed_change", "max_segments", "stop_before_reversing", "command_period_s")
+MOTOR_KEYS = ("min_speed_rpm", "max_speed_change", "max_segments", "stop_before_reversing", "command_period_s",
+              "max_start_stops")
 
 
 def check_instrument(instrument: Instrument) -> None:
@@ -247,7 +248,10 @@ def _motors(data: dict[str, Any], origin: str) -> MotorLimits:
         raise InstrumentError(f"{where}: command_period_s must be > 0 seconds, found {period!r}")
     if change is not None and not 0 < change < 1:
         raise InstrumentError(f"{where}: max_speed_change must lie in (0, 1) (a relative change), found {change!r}")
-    return MotorLimits(minimum, change, segments, reverse, period)
+    cycles = table.get("max_start_stops")
+    if cycles is not None and (isinstance(cycles, bool) or not isinstance(cycles, int) or cycles < 1):
+        raise InstrumentError(f"{where}: max_start_stops must be an integer >= 1, found {cycles!r}")
+    return MotorLimits(minimum, change, segments, reverse, period, cycles)
 
 
 def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> Instrument:

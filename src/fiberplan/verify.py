@@ -76,7 +76,7 @@ class LimitViolation:
     t_s: float
     value: float
     limit: float
-    kind: str  # "hard_stop" or "speed"; motor limits: "min_speed", "speed_change", "reversal", "segments"
+    kind: str  # "hard_stop" or "speed"; motor limits: "min_speed", "speed_change", "reversal", "segments", "start_stops"
     t_first_s: float = float("nan")
 
 
@@ -393,7 +393,8 @@ def _check_motors(inst: Instrument, ids: np.ndarray, trajectory: Trajectory, rep
     slowest). ``speed_change``: consecutive moving commands in one direction whose speeds differ
     by more than ``max_speed_change`` times the first (worst: the largest ratio; starts and
     stops exempt). ``reversal``: consecutive moving commands in opposite directions (worst: the
-    largest jump). ``segments``: more constant-speed runs than ``max_segments``.
+    largest jump). ``segments``: more constant-speed runs than ``max_segments``. ``start_stops``:
+    more starts from rest than ``max_start_stops``.
     """
     motors = inst.motors
     report.motors_checked = motors.stated
@@ -426,6 +427,13 @@ def _check_motors(inst: Instrument, ids: np.ndarray, trajectory: Trajectory, rep
                 report.motor_violations.append(LimitViolation(
                     int(ids[i]), joint_name, float(times[worst + offset]), float(value[worst, i]), float(limit), kind,
                     float(times[first + offset])))
+        if motors.max_start_stops is not None:
+            from_rest = moving & np.vstack([np.ones((1, v.shape[1]), dtype=bool), ~moving[:-1]])
+            cycles = from_rest.sum(axis=0)
+            for i in np.flatnonzero(cycles > motors.max_start_stops):
+                k = int(np.flatnonzero(from_rest[:, i])[motors.max_start_stops])
+                report.motor_violations.append(LimitViolation(
+                    int(ids[i]), joint_name, float(times[-1]), float(cycles[i]), float(motors.max_start_stops), "start_stops", float(times[k])))
         if motors.max_segments is not None:
             starts = moving & np.vstack([np.ones((1, v.shape[1]), dtype=bool), ~moving[:-1] | (np.abs(v[1:] - v[:-1]) > tol)])
             count = starts.sum(axis=0)
