@@ -23,3 +23,20 @@ def scenario_dict() -> dict[str, Any]:
     for k, row in enumerate(data["positioners"]):
         row["id"] = 10 + k
     return copy.deepcopy(data)
+
+
+@pytest.fixture
+def run_cli(capsys):
+    """Run the command line in-process: ``run_cli(["plan", ...]) -> (exit status, stdout, stderr)``."""
+    from fiberplan.cli import main
+
+    def run(args: list[str]) -> tuple[int, str, str]:
+        try:
+            main(args)
+            code = 0
+        except SystemExit as e:
+            code = int(e.code or 0)
+        out = capsys.readouterr()
+        return code, out.out, out.err
+
+    return run

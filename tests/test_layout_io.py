@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 import fiberplan as fp
-from fiberplan.cli import main
 from fiberplan.errors import ScenarioError
 from fiberplan.kinematics import fiber_positions
 from fiberplan.layout_io import read_layout, read_target_table
@@ -28,16 +27,6 @@ def _write_layout(path, scenario, *, orient=None, locked=(), ecsv=False, first_i
         lines.append(sep.join(map(str, cells)))
     path.write_text("\n".join(lines) + "\n")
     return path
-
-
-def _run(args, capsys):
-    try:
-        main(args)
-        code = 0
-    except SystemExit as e:
-        code = int(e.code or 0)
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 @pytest.mark.parametrize("ecsv", [False, True])
@@ -68,28 +57,28 @@ def test_make_scenario_on_a_layout_keeps_ids_orientations_and_locks(tmp_path):
     assert reached == int(made.has_target.sum())
 
 
-def test_cli_layout_random_then_plan(tmp_path, capsys):
+def test_cli_layout_random_then_plan(tmp_path, run_cli):
     """The issue's check, on a 100-positioner layout written here (DESI geometry: MOONS random
     starts under MOONS' own zones are the known slow case of docs/results.md)."""
     sc = fp.make_scenario("desi", 100, "random", 0)
     path = _write_layout(tmp_path / "L.csv", sc, orient=np.full(100, 30.0))
-    code, out, _ = _run(["scenario", "--instrument", "desi", "--layout", str(path), "--kind", "random", "--seed", "3",
-                         "--out", str(tmp_path / "s.json")], capsys)
+    code, out, _ = run_cli(["scenario", "--instrument", "desi", "--layout", str(path), "--kind", "random", "--seed", "3",
+                         "--out", str(tmp_path / "s.json")])
     assert code == 0 and "100 positioners from" in out
-    code, out, _ = _run(["plan", "--scenario", str(tmp_path / "s.json"), "--planner", "mpc", "--json", "-q"], capsys)
+    code, out, _ = run_cli(["plan", "--scenario", str(tmp_path / "s.json"), "--planner", "mpc", "--json", "-q"])
     summary = json.loads(out)
     assert code == 0 and summary["collisions"] == 0 and summary["reached"] == summary["targets"] == 100
 
 
-def test_cli_layout_with_a_target_table(tmp_path, capsys):
+def test_cli_layout_with_a_target_table(tmp_path, run_cli):
     sc = fp.make_scenario("moons-capsules", 19, "unfold", 1)
     path = _write_layout(tmp_path / "L.csv", sc, locked=(0,))
     xy = fiber_positions(sc.instrument, sc.base_xy, sc.orient, sc.target)
     rows = ["id,x_mm,y_mm,parity,priority"] + [f"{100 + k},{xy[k, 0]:.6f},{xy[k, 1]:.6f},{'R' if sc.target[k, 1] > 0 else 'L'},{1 + k % 2}"
                                                 for k in range(1, 19, 2)]
     (tmp_path / "T.csv").write_text("\n".join(rows) + "\n")
-    code, _, err = _run(["scenario", "--instrument", "moons-capsules", "--layout", str(path), "--targets", str(tmp_path / "T.csv"),
-                           "--out", str(tmp_path / "s.json")], capsys)
+    code, _, err = run_cli(["scenario", "--instrument", "moons-capsules", "--layout", str(path), "--targets", str(tmp_path / "T.csv"),
+                           "--out", str(tmp_path / "s.json")])
     assert code == 0, err
     made = fp.load_scenario(tmp_path / "s.json")
     assert made.locked.tolist()[0] and int(made.wants_target.sum()) == 9
@@ -135,15 +124,15 @@ def test_target_table_errors_name_line_and_column(tmp_path, text, match):
         read_target_table(tmp_path / "T.csv")
 
 
-def test_cli_refuses_targets_of_unknown_or_locked_positioners(tmp_path, capsys):
+def test_cli_refuses_targets_of_unknown_or_locked_positioners(tmp_path, run_cli):
     sc = fp.make_scenario("desi", 7, "random", 0)
     path = _write_layout(tmp_path / "L.csv", sc, locked=(2,))
     (tmp_path / "T.csv").write_text("id,alpha_deg,beta_deg\n999,0,90\n")
-    code, _, err = _run(["scenario", "--layout", str(path), "--targets", str(tmp_path / "T.csv"), "--out", str(tmp_path / "s.json")], capsys)
+    code, _, err = run_cli(["scenario", "--layout", str(path), "--targets", str(tmp_path / "T.csv"), "--out", str(tmp_path / "s.json")])
     assert code == 2 and "positioner(s) [999]" in err
     (tmp_path / "T.csv").write_text("id,alpha_deg,beta_deg\n102,0,90\n")
-    code, _, err = _run(["scenario", "--layout", str(path), "--targets", str(tmp_path / "T.csv"), "--out", str(tmp_path / "s.json")], capsys)
+    code, _, err = run_cli(["scenario", "--layout", str(path), "--targets", str(tmp_path / "T.csv"), "--out", str(tmp_path / "s.json")])
     assert code == 2 and "positioner 102 is locked" in err
-    code, _, err = _run(["scenario", "--layout", str(path), "-n", "19", "--out", str(tmp_path / "s.json")], capsys)
+    code, _, err = run_cli(["scenario", "--layout", str(path), "-n", "19", "--out", str(tmp_path / "s.json")])
     assert code == 2 and "cannot be used with --layout" in err
     assert not (tmp_path / "s.json").exists()

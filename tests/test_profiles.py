@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 import fiberplan as fp
-from fiberplan.cli import main
 from fiberplan.errors import InstrumentError, ProfileError
 from fiberplan.instrument import MotorLimits
 from fiberplan.instrument_io import instrument_from_dict, instrument_text
@@ -31,17 +30,6 @@ def moons_run() -> fp.PlanResult:
 @pytest.fixture(scope="module")
 def moons_profiles(moons_run):
     return fp.discretise(moons_run)
-
-
-def _run(args: list[str], capsys) -> tuple[int, str, str]:
-    """Exit status, stdout and stderr of the command line."""
-    try:
-        main(args)
-        code = 0
-    except SystemExit as e:
-        code = int(e.code or 0)
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def test_profiles_are_verified_reach_the_same_ends_and_keep_the_makespan(moons_run, moons_profiles):
@@ -182,7 +170,7 @@ def test_csv_errors_name_the_row(moons_run, moons_profiles, tmp_path):
     bad = tmp_path / "bad.csv"
     with bad.open("w", newline="") as handle:
         csv.writer(handle).writerows(rows)
-    with pytest.raises(ProfileError, match="row 4: duration_s must be a number, found 'fast'"):
+    with pytest.raises(ProfileError, match="row 4, column duration_s: expected a number, found 'fast'"):
         read_paths(bad, moons_run.scenario)
     rows = list(csv.reader(path.open()))
     rows[2][0] = "999"
@@ -206,32 +194,32 @@ def test_json_errors_name_the_entry(moons_run, moons_profiles, tmp_path):
         read_paths(tmp_path / "other.json")
 
 
-def test_cli_profiles_then_verify(moons_run, tmp_path, capsys):
+def test_cli_profiles_then_verify(moons_run, tmp_path, run_cli):
     run = tmp_path / "m.h5"
     fp.save_result(moons_run, run)
-    code, out, _ = _run(["profiles", str(run), "--out", str(tmp_path / "p.h5"), "--json"], capsys)
+    code, out, _ = run_cli(["profiles", str(run), "--out", str(tmp_path / "p.h5"), "--json"])
     assert code == 0
     summary = json.loads(out)
     assert summary["verified_ok"] is True and summary["format"] == "h5" and summary["motor_violations"] == 0
-    code, out, _ = _run(["verify", str(tmp_path / "p.h5"), "--json", "--motors"], capsys)
+    code, out, _ = run_cli(["verify", str(tmp_path / "p.h5"), "--json", "--motors"])
     assert code == 0
     report = json.loads(out)
     assert report["verified_ok"] and report["collisions"] == 0 and report["report"]["motor_violations"] == []
     assert report["reached"] == 19
 
 
-def test_cli_verify_reads_foreign_paths(moons_run, moons_profiles, tmp_path, capsys):
+def test_cli_verify_reads_foreign_paths(moons_run, moons_profiles, tmp_path, run_cli):
     write_profiles(moons_profiles, moons_run, tmp_path / "p.csv", "csv")
     (tmp_path / "s.json").write_text(json.dumps(moons_run.scenario.to_dict()))
-    code, out, _ = _run(["verify", "--paths", str(tmp_path / "p.csv"), "--scenario", str(tmp_path / "s.json"), "--json"], capsys)
+    code, out, _ = run_cli(["verify", "--paths", str(tmp_path / "p.csv"), "--scenario", str(tmp_path / "s.json"), "--json"])
     assert code == 0 and json.loads(out)["verified_ok"] is True
-    code, _, err = _run(["verify", "--paths", str(tmp_path / "p.csv")], capsys)
+    code, _, err = run_cli(["verify", "--paths", str(tmp_path / "p.csv")])
     assert code == 2 and "holds no scenario" in err and "Traceback" not in err
-    code, _, err = _run(["verify"], capsys)
+    code, _, err = run_cli(["verify"])
     assert code == 2 and "give a trajectory FILE, or --paths" in err
 
 
-def test_cli_verify_catches_colliding_foreign_paths(moons_run, tmp_path, capsys):
+def test_cli_verify_catches_colliding_foreign_paths(moons_run, tmp_path, run_cli):
     """Time-stamped points that drive two positioners straight to their targets collide: exit 1."""
     scenario = moons_run.scenario
     straight = fp.plan(scenario, "straight")
@@ -246,34 +234,34 @@ def test_cli_verify_catches_colliding_foreign_paths(moons_run, tmp_path, capsys)
         positioners.append(entry)
     (tmp_path / "pts.json").write_text(json.dumps({"format": "fiberplan-points", "version": 1, "angle_unit": "rad", "positioners": positioners}))
     (tmp_path / "s.json").write_text(json.dumps(scenario.to_dict()))
-    code, out, _ = _run(["verify", "--paths", str(tmp_path / "pts.json"), "--scenario", str(tmp_path / "s.json")], capsys)
+    code, out, _ = run_cli(["verify", "--paths", str(tmp_path / "pts.json"), "--scenario", str(tmp_path / "s.json")])
     assert code == 1 and "collision: positioners" in out
 
 
-def test_tampered_profiles_group_is_a_file_inconsistency(moons_run, moons_profiles, tmp_path, capsys):
+def test_tampered_profiles_group_is_a_file_inconsistency(moons_run, moons_profiles, tmp_path, run_cli):
     path = write_profiles(moons_profiles, moons_run, tmp_path / "p.h5", "h5")
     with h5py.File(path, "r+") as f:
         f["profiles/speed_rad_s"][0] = f["profiles/speed_rad_s"][0] * 1.01
-    code, out, _ = _run(["verify", str(path)], capsys)
+    code, out, _ = run_cli(["verify", str(path)])
     assert code == 1 and "/profiles does not rebuild /trajectory exactly" in out
 
 
-def test_cli_refuses_an_unknown_extension_before_work(moons_run, tmp_path, capsys):
+def test_cli_refuses_an_unknown_extension_before_work(moons_run, tmp_path, run_cli):
     run = tmp_path / "m.h5"
     fp.save_result(moons_run, run)
-    code, _, err = _run(["profiles", str(run), "--out", str(tmp_path / "p.txt")], capsys)
+    code, _, err = run_cli(["profiles", str(run), "--out", str(tmp_path / "p.txt")])
     assert code == 2 and "cannot tell the format" in err
     assert not (tmp_path / "p.txt").exists()
 
 
-def test_show_profiles_draws_a_picture_and_refuses_unknown_ids(moons_run, tmp_path, capsys):
+def test_show_profiles_draws_a_picture_and_refuses_unknown_ids(moons_run, tmp_path, run_cli):
     run = tmp_path / "m.h5"
     fp.save_result(moons_run, run)
     ident = int(moons_run.scenario.ids[3])
-    code, out, _ = _run(["show", str(run), "--profiles", f"{ident},0", "--out", str(tmp_path / "p.png")], capsys)
+    code, out, _ = run_cli(["show", str(run), "--profiles", f"{ident},0", "--out", str(tmp_path / "p.png")])
     assert code == 0 and "profiles verified: True" in out
     assert (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"
-    code, _, err = _run(["show", str(run), "--profiles", "999", "--out", str(tmp_path / "q.png")], capsys)
+    code, _, err = run_cli(["show", str(run), "--profiles", "999", "--out", str(tmp_path / "q.png")])
     assert code == 2 and "positioner(s) [999] not in" in err
     assert not (tmp_path / "q.png").exists()
 

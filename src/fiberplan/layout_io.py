@@ -17,6 +17,7 @@ from __future__ import annotations
 import csv
 import math
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -83,14 +84,31 @@ def _columns(header: list[str], required: tuple[str, ...], optional: tuple[str, 
         raise ScenarioError(f"{origin}: {'; '.join(parts)}; expected {', '.join(required)} and optionally {', '.join(optional)}")
 
 
-def _number(text: str, column: str, where: str) -> float:
+def parse_number(text: str, where: str, error: type[Exception] = ScenarioError) -> float:
+    """A table cell as a finite number, else ``error`` naming ``where`` (file, line, column)."""
     try:
         value = float(text)
     except ValueError as e:
-        raise ScenarioError(f"{where}, column {column}: expected a number, found {text!r}") from e
+        raise error(f"{where}: expected a number, found {text!r}") from e
     if not math.isfinite(value):
-        raise ScenarioError(f"{where}, column {column}: expected a finite number, found {text!r}")
+        raise error(f"{where}: expected a finite number, found {text!r}")
     return value
+
+
+def _number(text: str, column: str, where: str) -> float:
+    return parse_number(text, f"{where}, column {column}")
+
+
+def _rows_by_id(rows: list[tuple[int, list[str]]], id_column: int, origin: str) -> Iterator[tuple[str, list[str], int]]:
+    """``(where, cells, id)`` of every row, refusing a repeated id (naming both lines)."""
+    seen: dict[int, int] = {}
+    for n, row in rows:
+        where = f"{origin} line {n}"
+        ident = _integer(row[id_column], "id", where)
+        if ident in seen:
+            raise ScenarioError(f"{where}: positioner id {ident} repeats line {seen[ident]}")
+        seen[ident] = n
+        yield where, row, ident
 
 
 def _integer(text: str, column: str, where: str) -> int:
@@ -113,13 +131,7 @@ def read_layout(path: str | Path) -> Layout:
         raise ScenarioError(f"{origin} has a header but no positioner")
     col = {name: header.index(name) for name in header}
     ids, xy, orient, locked = [], [], [], []
-    seen: dict[int, int] = {}
-    for n, row in rows:
-        where = f"{origin} line {n}"
-        ident = _integer(row[col["id"]], "id", where)
-        if ident in seen:
-            raise ScenarioError(f"{where}: positioner id {ident} repeats line {seen[ident]}")
-        seen[ident] = n
+    for where, row, ident in _rows_by_id(rows, col["id"], origin):
         ids.append(ident)
         xy.append((_number(row[col["x_mm"]], "x_mm", where), _number(row[col["y_mm"]], "y_mm", where)))
         orient.append(_number(row[col["orient_deg"]], "orient_deg", where))
@@ -146,13 +158,7 @@ def read_target_table(path: str | Path) -> dict[int, dict[str, Any]]:
     _columns(header, ("id", *(TARGET_POSITION if by_position else TARGET_JOINTS)), TARGET_OPTIONAL if by_position else ("priority",), origin)
     col = {name: header.index(name) for name in header}
     out: dict[int, dict[str, Any]] = {}
-    lines: dict[int, int] = {}
-    for n, row in rows:
-        where = f"{origin} line {n}"
-        ident = _integer(row[col["id"]], "id", where)
-        if ident in out:
-            raise ScenarioError(f"{where}: positioner id {ident} repeats line {lines[ident]}")
-        lines[ident] = n
+    for where, row, ident in _rows_by_id(rows, col["id"], origin):
         if by_position:
             target: dict[str, Any] = {"x_mm": _number(row[col["x_mm"]], "x_mm", where), "y_mm": _number(row[col["y_mm"]], "y_mm", where)}
             if "parity" in col and row[col["parity"]] != "":

@@ -31,6 +31,7 @@ import numpy as np
 from fiberplan._atomic import atomic_path
 from fiberplan._json import json_ready
 from fiberplan.errors import FiberplanError, ProfileError
+from fiberplan.layout_io import parse_number
 from fiberplan.profiles import JOINTS, JointProfile, Profiles, rebuild
 from fiberplan.scenario import Scenario, load_scenario, scenario_from_dict
 from fiberplan.trajectory import PlanResult, Trajectory, save_result
@@ -246,13 +247,7 @@ def _csv_rows(path: Path, origin: str) -> list[dict[str, str]]:
 
 
 def _number(text: str, key: str, where: str) -> float:
-    try:
-        value = float(text)
-    except ValueError as e:
-        raise ProfileError(f"{where}: {key} must be a number, found {text!r}") from e
-    if not math.isfinite(value):
-        raise ProfileError(f"{where}: {key} must be finite, found {text!r}")
-    return value
+    return parse_number(text, f"{where}, column {key}", ProfileError)
 
 
 def _from_rows(scenario: Scenario, rows: list[dict[str, Any]], origin: str) -> Trajectory:
