@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fiberplan.errors import InstrumentError
 from fiberplan.geometry import _EPS, PairClearance, capsule_segments, capsule_tables, joint_gradients, segment_distance
 from fiberplan.instrument import Instrument
 
@@ -63,6 +64,12 @@ class _Tables:
     disc_radius: np.ndarray  # (Z,): constant on the rigid arm, padding included
     pairs: tuple[_ZonePair, ...]
     n_combos: int
+    pair_a: np.ndarray  # (P,) zone a of each zone pair
+    pair_b: np.ndarray  # (P,) zone b
+    combo_pair: np.ndarray  # (K,) the zone pair of each combo
+    combo_ca: np.ndarray  # (K,) its capsule rows and radii sum
+    combo_cb: np.ndarray
+    combo_radii: np.ndarray
 
 
 @functools.lru_cache(maxsize=32)
@@ -91,7 +98,15 @@ def _tables(instrument: Instrument) -> _Tables:
             points_a=zone_rows[za], ends_a=a not in polygon, points_b=zone_rows[zb], ends_b=b not in polygon,
             poly_a=a in polygon, poly_b=b in polygon, radius_sum=float(radius[za] + radius[zb]),
         ))
-    return _Tables(zone_rows, w_start, w_end, disc, tuple(p for p in pairs if len(p.combos)), len(combos))
+    kept = tuple(p for p in pairs if len(p.combos))
+    combo_pair = np.full(len(combos), -1, dtype=np.int64)
+    for k, p in enumerate(kept):
+        combo_pair[p.combos] = k
+    if np.any(combo_pair < 0):
+        missing = np.flatnonzero(combo_pair < 0).tolist()
+        raise InstrumentError(f"instrument {instrument.name!r}: capsule combinations {missing} belong to no zone pair")
+    return _Tables(zone_rows, w_start, w_end, disc, kept, len(combos), np.array([p.zone_a for p in kept], dtype=np.int64),
+                   np.array([p.zone_b for p in kept], dtype=np.int64), combo_pair, combos[:, 0], combos[:, 1], combo_radii)
 
 
 def _centres(tables: _Tables, start: np.ndarray, end: np.ndarray) -> np.ndarray:
@@ -160,28 +175,33 @@ def clearances(
     t = np.zeros((n, tables.n_combos))
     exact = np.zeros((n, tables.n_combos), dtype=bool)
     ci, cj = _centres(tables, start_i, end_i), _centres(tables, start_j, end_j)
-    for zp in tables.pairs:
-        bound = _bound(tables, zp, ci, cj)
-        clear[:, zp.combos] = bound[:, None]
-        dist[:, zp.combos] = bound[:, None] + zp.radii
-        near = np.flatnonzero(bound < EXACT_BELOW_MM)
-        if not len(near):
+    # Every zone pair's disc bound at once, then every near combination's exact segment distance
+    # in one call (the per-element arithmetic of the zone-by-zone form, without its Python loop).
+    d = ci[:, tables.pair_a] - cj[:, tables.pair_b]  # (L, P, 2)
+    bounds = np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) - tables.disc_radius[tables.pair_a] - tables.disc_radius[tables.pair_b]
+    per_combo = bounds[:, tables.combo_pair]  # (L, K)
+    clear[:] = per_combo
+    dist[:] = per_combo + tables.combo_radii
+    r, k = np.nonzero(per_combo < EXACT_BELOW_MM)
+    if len(r):
+        ca, cb = tables.combo_ca[k], tables.combo_cb[k]
+        dd, ss, tt = segment_distance(start_i[r, ca], end_i[r, ca], start_j[r, cb], end_j[r, cb])
+        clear[r, k] = dd - tables.combo_radii[k]
+        dist[r, k] = dd
+        s[r, k] = ss
+        t[r, k] = tt
+        exact[r, k] = True
+    # A zone wholly inside a polygon touches no edge: only possible where the discs overlap.
+    for p, zp in enumerate(tables.pairs):
+        if not (zp.poly_a or zp.poly_b):
             continue
-        d, ss, tt = _exact(zp, near, start_i, end_i, start_j, end_j)
-        rows, cols = near[:, None], zp.combos[None, :]
-        clear[rows, cols] = d - zp.radii
-        dist[rows, cols] = d
-        s[rows, cols] = ss
-        t[rows, cols] = tt
-        exact[rows, cols] = True
-        # A zone wholly inside a polygon touches no edge: only possible where the discs overlap.
-        overlap = near[bound[near] <= 0.0]
-        if len(overlap) and (zp.poly_a or zp.poly_b):
+        overlap = np.flatnonzero(bounds[:, p] <= 0.0)
+        if len(overlap):
             depth = _depth(zp, overlap, start_i, end_i, start_j, end_j)
             inside = depth > 0.0
             if np.any(inside):
-                r = overlap[inside][:, None]
-                clear[r, cols] = np.minimum(clear[r, cols], -(depth[inside] + zp.radius_sum)[:, None])
+                rows, cols = overlap[inside][:, None], zp.combos[None, :]
+                clear[rows, cols] = np.minimum(clear[rows, cols], -(depth[inside] + zp.radius_sum)[:, None])
     return clear, dist, s, t, exact
 
 
