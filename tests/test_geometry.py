@@ -117,9 +117,11 @@ def test_clearance_gradient_matches_finite_differences(name, q, orient, offset):
             plus = pair_clearance(inst, base, ori, joints + dq, pairs).clearance[0]
             minus = pair_clearance(inst, base, ori, joints - dq, pairs).clearance[0]
             centre = result.clearance[0]
-            one_sided_agree = np.abs((plus - centre) - (centre - minus)) < 1e-9
+            # At kinks (closest point switching, parallel segments) the derivative is one-sided;
+            # skip those whose one-sided slopes differ by more than the tolerance compared below
+            # (a looser check let a kink of slope change 4.5e-4 through: SDSS, beta = pi).
+            one_sided_agree = np.abs((plus - centre) - (centre - minus)) < 2e-5 * h
             fd = (plus - minus) / (2 * h)
-            # at kinks (closest point switching, parallel segments) the derivative is one-sided; skip those
             ok = one_sided_agree
             np.testing.assert_allclose(grad[0, ok, k], fd[ok], atol=2e-5)
 
