@@ -316,9 +316,10 @@ def _read_h5(path: Path, scenario: Scenario | None, origin: str) -> tuple[Scenar
         if "profiles" not in f:
             raise ProfileError(f"{origin} holds no /profiles group (a plain trajectory file: run `fiberplan verify {path.name}`)")
         g = f["profiles"]
-        n = len(g["positioner_id"])
-        rows = [{"positioner_id": int(g["positioner_id"][k]), "joint": g["joint"][k].decode("ascii"), "segment": int(g["segment"][k]),
-                 **{name: float(g[name][k]) for name in CSV_COLUMNS[3:]}} for k in range(n)]
+        columns = {name: g[name][...] for name in CSV_COLUMNS}  # whole datasets: one read each
+        joints = [j.decode("ascii") for j in columns["joint"].tolist()]
+        rows = [{"positioner_id": int(ident), "joint": joint, "segment": int(seg), **{name: float(columns[name][k]) for name in CSV_COLUMNS[3:]}}
+                for k, (ident, joint, seg) in enumerate(zip(columns["positioner_id"].tolist(), joints, columns["segment"].tolist(), strict=True))]
     scenario = run.scenario if scenario is None else scenario
     return scenario, _from_rows(scenario, rows, f"{origin} /profiles"), "h5"
 
