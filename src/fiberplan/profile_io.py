@@ -33,7 +33,7 @@ from fiberplan._json import json_ready
 from fiberplan.errors import FiberplanError, ProfileError
 from fiberplan.layout_io import parse_number
 from fiberplan.profiles import JOINTS, JointProfile, Profiles, rebuild
-from fiberplan.scenario import Scenario, load_scenario, scenario_from_dict
+from fiberplan.scenario import Scenario, scenario_from_dict
 from fiberplan.trajectory import PlanResult, Trajectory, save_result
 
 FORMATS = ("h5", "json", "csv", "points")
@@ -177,11 +177,6 @@ def read_paths(path: str | Path, scenario: Scenario | None = None) -> tuple[Scen
     if data["format"] == PROFILES_FORMAT:
         return scenario, _from_profiles_json(scenario, data, origin), "json"
     return scenario, _from_points(scenario, data, origin), "points"
-
-
-def load_scenario_arg(path: str | Path | None) -> Scenario | None:
-    """The scenario file given with ``--scenario`` (or ``None``)."""
-    return None if path is None else load_scenario(path)
 
 
 def _need(scenario: Scenario | None, origin: str) -> Scenario:

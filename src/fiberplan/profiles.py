@@ -79,11 +79,6 @@ class JointProfile:
         angles = self.start_rad + np.concatenate([[0.0], np.cumsum(self.speeds_rad_s * self.durations_s)])
         return times, angles
 
-    @property
-    def n_moving(self) -> int:
-        """Segments with a non-zero speed."""
-        return int(np.count_nonzero(self.speeds_rad_s))
-
 
 @dataclass(frozen=True, eq=False)
 class Profiles:
