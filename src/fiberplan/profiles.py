@@ -496,8 +496,8 @@ def _fit_joint(
 
     Depth-first search over breakpoints, longest segment first (:func:`_options`, ``search[0]``
     from each); a dead end (no allowed speed stays in the corridor) backtracks. After
-    ``search[1]`` breakpoints tried,
-    the greedy fit that breaks a motor limit where it must (:func:`_relaxed_fit`) is taken.
+    ``search[1]`` breakpoints tried, the greedy fit that breaks a motor limit where it must
+    (:func:`_relaxed_fit`) is taken.
     """
     moved = np.flatnonzero(q[1:] != q[:-1])
     if len(moved) == 0:
