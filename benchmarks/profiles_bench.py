@@ -9,7 +9,8 @@ time. Writes one JSON file (rows and aggregates, with the machine)::
     python benchmarks/profiles_bench.py --out benchmarks/results/profiles.json            # the quick sets
     python benchmarks/profiles_bench.py --full --out benchmarks/results/profiles_full.json  # the issue's sets
 
-Rows are written after every run (a killed run keeps what was measured).
+Rows are written after every run (a killed run keeps what was measured); each row holds the
+histogram of segments per moving joint (``segments_hist``: count -> joints).
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ def measure(planner: str, instrument: str, n: int, kind: str, seed: int) -> dict
     moving = counts[counts > 0]
     return row | {
         "discretise_s": summary["discretise_s"],
-        "segments": moving.tolist(),
+        "segments_hist": {str(k): int(v) for k, v in zip(*np.unique(moving, return_counts=True), strict=True)},
         "segments_median": float(np.median(moving)) if len(moving) else 0.0,
         "segments_max": int(moving.max()) if len(moving) else 0,
         "first_pass_verified": summary["refit_rounds"] == 0,
@@ -82,7 +83,8 @@ def aggregate(rows: list[dict]) -> list[dict]:
     out = []
     for (planner, instrument, n, kind), group in groups.items():
         ok = [r for r in group if "error" not in r]
-        segments = np.concatenate([r["segments"] for r in ok]) if ok else np.zeros(0)
+        segments = np.concatenate([np.repeat(np.array([int(k) for k in r["segments_hist"]], dtype=int), list(r["segments_hist"].values()))
+                                   for r in ok]) if ok else np.zeros(0)
         increase = [r["makespan_after_s"] / r["makespan_before_s"] - 1 for r in ok if r["makespan_before_s"] > 0]
         share = [r["discretise_s"] / r["plan_wall_s"] for r in ok if r["plan_wall_s"] > 0]
         violations = [r["motor_violations"] for r in ok if r["motor_violations"] is not None]
