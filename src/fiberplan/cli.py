@@ -339,7 +339,7 @@ def verify(file: Path | None, as_json: bool, max_events: int, instrument: str | 
         report = run_verify(run.scenario, run.trajectory, instrument=None if geometry is None else geometry[0])
         mismatches, warnings = check_run_file(run)
         report.file_mismatches.extend(mismatches)
-        differs = rebuilt_matches(file)
+        differs = rebuilt_matches(run)
         if differs is not None:
             report.file_mismatches.append(differs)
         if geometry is None:
@@ -470,7 +470,7 @@ def profiles(run_file: Path, out: Path, form: str | None, fraction: float, as_js
     from fiberplan.trajectory import load_result
 
     chosen = format_of(out, form)
-    check_output_path(out, what="--out", inputs=[run_file])
+    check_output_path(out, what="--out", inputs=[run_file], suffixes={"h5": HDF5_SUFFIXES, "csv": (".csv",)}.get(chosen, JSON_SUFFIXES))
     result = load_result(run_file)
     made = discretise(result, fraction=fraction)
     write_profiles(made, result, out, chosen)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import copy
 import math
 import tomllib
+from collections.abc import Iterator
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -162,16 +163,22 @@ def _pair(table: dict[str, Any], key: str, where: str, unit: str = "degrees") ->
     return first, second
 
 
+def _table_list(raw: Any, key: str, item: str, keys: tuple[str, ...], origin: str) -> Iterator[tuple[str, dict[str, Any]]]:
+    """``(where, table)`` of each entry of an array of tables (``[[capsules]]``, ``[[zones]]``), its keys checked."""
+    if not isinstance(raw, list) or not all(isinstance(t, dict) for t in raw):
+        raise InstrumentError(f"{origin}: [[{key}]] must be a list of tables ({', '.join(keys)})")
+    for k, table in enumerate(raw):
+        where = f"{origin}: {item} #{k} ({table.get('name', '?')!r})"
+        check_keys(table, keys, where, InstrumentError)
+        yield where, table
+
+
 def _zones(raw: Any, origin: str) -> tuple[Polygon, ...]:
     """The ``[[zones]]`` list: convex polygons in an arm's frame, given by their vertices or as
     a rectangle along the arm (``from_mm`` to ``to_mm`` from the arm's joint, ``width_mm`` wide,
     centred ``offset_mm`` to the arm's left)."""
-    if not isinstance(raw, list) or not all(isinstance(z, dict) for z in raw):
-        raise InstrumentError(f"{origin}: [[zones]] must be a list of tables ({', '.join(ZONE_KEYS)})")
     out = []
-    for k, z in enumerate(raw):
-        where = f"{origin}: zone #{k} ({z.get('name', '?')!r})"
-        check_keys(z, ZONE_KEYS, where, InstrumentError)
+    for where, z in _table_list(raw, "zones", "zone", ZONE_KEYS, origin):
         for key in ("name", "arm", "shape"):
             if key not in z:
                 raise InstrumentError(f"{where}: missing key {key!r}; see a complete file with: fiberplan instruments moons --toml")
@@ -280,12 +287,8 @@ def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> In
     datum_deg = _pair(motion, "datum_deg", where_m)
     datum = (math.radians(datum_deg[0]), math.radians(datum_deg[1]) + beta_shift)
     raw_capsules = data.get("capsules", [] if "zones" in data else None)
-    if not isinstance(raw_capsules, list) or not all(isinstance(c, dict) for c in raw_capsules):
-        raise InstrumentError(f"{origin}: [[capsules]] must be a list of tables (name, arm, start_mm, end_mm, radius_mm, layer)")
     capsules = []
-    for k, c in enumerate(raw_capsules):
-        where_c = f"{origin}: capsule #{k} ({c.get('name', '?')!r})"
-        check_keys(c, CAPSULE_KEYS, where_c, InstrumentError)
+    for where_c, c in _table_list(raw_capsules, "capsules", "capsule", CAPSULE_KEYS, origin):
         layer = c.get("layer", 0)
         if isinstance(layer, bool) or not isinstance(layer, int):
             raise InstrumentError(f"{where_c}: layer must be an integer, found {layer!r}")

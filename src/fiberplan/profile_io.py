@@ -34,7 +34,7 @@ from fiberplan.errors import FiberplanError, ProfileError
 from fiberplan.layout_io import parse_number
 from fiberplan.profiles import JOINTS, JointProfile, Profiles, rebuild
 from fiberplan.scenario import Scenario, scenario_from_dict
-from fiberplan.trajectory import PlanResult, Trajectory, save_result
+from fiberplan.trajectory import PlanResult, RunFile, Trajectory, save_result
 
 FORMATS = ("h5", "json", "csv", "points")
 SUFFIXES = {".h5": "h5", ".hdf5": "h5", ".json": "json", ".csv": "csv"}
@@ -303,32 +303,41 @@ def _from_points(scenario: Scenario, data: dict[str, Any], origin: str) -> Traje
     return rebuild(scenario, dict(sorted(knots.items())))
 
 
-def _read_h5(path: Path, scenario: Scenario | None, origin: str) -> tuple[Scenario, Trajectory, str]:
-    from fiberplan.trajectory import read_run
-
-    run = read_run(path)
-    with h5py.File(path, "r") as f:
-        if "profiles" not in f:
-            raise ProfileError(f"{origin} holds no /profiles group (a plain trajectory file: run `fiberplan verify {path.name}`)")
-        g = f["profiles"]
-        columns = {name: g[name][...] for name in CSV_COLUMNS}  # whole datasets: one read each
-        joints = [j.decode("ascii") for j in columns["joint"].tolist()]
-        rows = [{"positioner_id": int(ident), "joint": joint, "segment": int(seg), **{name: float(columns[name][k]) for name in CSV_COLUMNS[3:]}}
-                for k, (ident, joint, seg) in enumerate(zip(columns["positioner_id"].tolist(), joints, columns["segment"].tolist(), strict=True))]
-    scenario = run.scenario if scenario is None else scenario
-    return scenario, _from_rows(scenario, rows, f"{origin} /profiles"), "h5"
-
-
-def rebuilt_matches(path: Path) -> str | None:
-    """For a trajectory file with ``/profiles``: ``None`` when the profiles rebuild its
-    trajectory exactly, else what differs."""
+def _profile_rows(path: Path, origin: str) -> list[dict[str, Any]] | None:
+    """The ``/profiles`` rows of a trajectory file (``None`` without the group), each dataset read whole."""
     with h5py.File(path, "r") as f:
         if "profiles" not in f:
             return None
-    _, rebuilt, _ = read_paths(path)
+        g = f["profiles"]
+        columns = {name: g[name][...] for name in CSV_COLUMNS}
+    joints = [j.decode("ascii") for j in columns["joint"].tolist()]
+    ids, segments = columns["positioner_id"].tolist(), columns["segment"].tolist()
+    return [{"positioner_id": int(ident), "joint": joint, "segment": int(seg), **{name: float(columns[name][k]) for name in CSV_COLUMNS[3:]}}
+            for k, (ident, joint, seg) in enumerate(zip(ids, joints, segments, strict=True))]
+
+
+def _read_h5(path: Path, scenario: Scenario | None, origin: str) -> tuple[Scenario, Trajectory, str]:
     from fiberplan.trajectory import read_run
 
-    stored = read_run(path).trajectory
+    rows = _profile_rows(path, origin)
+    if rows is None:
+        raise ProfileError(f"{origin} holds no /profiles group (a plain trajectory file: run `fiberplan verify {path.name}`)")
+    scenario = read_run(path).scenario if scenario is None else scenario
+    return scenario, _from_rows(scenario, rows, f"{origin} /profiles"), "h5"
+
+
+def rebuilt_matches(run: RunFile) -> str | None:
+    """For a trajectory file (as read) with ``/profiles``: ``None`` when the profiles rebuild its
+    trajectory exactly (or it holds none), else what differs."""
+    origin = repr(str(run.path))
+    rows = _profile_rows(run.path, origin)
+    if rows is None:
+        return None
+    try:
+        rebuilt = _from_rows(run.scenario, rows, f"{origin} /profiles")
+    except ProfileError as e:
+        return f"/profiles cannot be read ({e})"
+    stored = run.trajectory
     same = stored.joints.shape == rebuilt.joints.shape and np.array_equal(stored.times, rebuilt.times)
     if not (same and np.array_equal(stored.joints, rebuilt.joints)):
         return "/profiles does not rebuild /trajectory exactly (the file was changed after export)"
