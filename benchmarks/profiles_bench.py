@@ -8,6 +8,13 @@ time. Writes one JSON file (rows and aggregates, with the machine)::
 
     python benchmarks/profiles_bench.py --out benchmarks/results/profiles.json            # the quick sets
     python benchmarks/profiles_bench.py --full --out benchmarks/results/profiles_full.json  # the issue's sets
+    python benchmarks/profiles_bench.py --governor --out benchmarks/results/motor_governor.json  # the mpc with and without
+                                                                                               # its motor governor
+
+``--only INSTRUMENT`` keeps the sets of one instrument. With ``--governor`` each run is planned
+twice, with the mpc's ``motor_limits`` off and on (:mod:`fiberplan.planners.motors`); the
+aggregates then compare the two: the motor limits broken in the plan's own samples and after
+discretisation, and what the governor costs in makespan.
 
 Rows are written after every run (a killed run keeps what was measured); each row holds the
 histogram of segments per moving joint (``segments_hist``: count -> joints).
@@ -42,16 +49,25 @@ FULL = (  # the quick sets first: a run stopped for time keeps them
     ("mpc", "moons", 61, "unfold", range(50)),
 )
 
+GOVERNOR = (
+    ("mpc", "moons-capsules", 61, "unfold", range(50)),
+    ("mpc", "moons", 61, "unfold", range(20)),
+)
 
-def measure(planner: str, instrument: str, n: int, kind: str, seed: int) -> dict:
-    """Plan and discretise one run; its figures."""
+
+def measure(planner: str, instrument: str, n: int, kind: str, seed: int, motor_limits: bool | None = None) -> dict:
+    """Plan (with the mpc's ``motor_limits`` as given, else its default) and discretise one run; its figures."""
     import fiberplan as fp
 
     scenario = fp.make_scenario(instrument, n, kind, seed)
-    result = fp.plan(scenario, planner)
+    result = fp.plan(scenario, planner, settings=None if motor_limits is None else {"motor_limits": motor_limits})
     row = {"planner": planner, "instrument": instrument, "n": n, "kind": kind, "seed": seed, "plan_wall_s": result.plan_wall_s}
-    if not fp.verify(scenario, result.trajectory).ok:
+    if motor_limits is not None:
+        row["motor_limits"] = motor_limits
+    plan_report = fp.verify(scenario, result.trajectory)
+    if not plan_report.ok:
         return row | {"error": "plan not verified"}
+    row["plan_motor_violations"] = len(plan_report.motor_violations) if plan_report.motors_checked else None
     started = time.perf_counter()
     try:
         made = fp.discretise(result)
@@ -79,17 +95,21 @@ def aggregate(rows: list[dict]) -> list[dict]:
     """Per (planner, instrument, n, kind): the issue's figures."""
     groups: dict[tuple, list[dict]] = {}
     for row in rows:
-        groups.setdefault((row["planner"], row["instrument"], row["n"], row["kind"]), []).append(row)
+        groups.setdefault((row["planner"], row["instrument"], row["n"], row["kind"], row.get("motor_limits")), []).append(row)
     out = []
-    for (planner, instrument, n, kind), group in groups.items():
+    for (planner, instrument, n, kind, governed), group in groups.items():
         ok = [r for r in group if "error" not in r]
         segments = np.concatenate([np.repeat(np.array([int(k) for k in r["segments_hist"]], dtype=int), list(r["segments_hist"].values()))
                                    for r in ok]) if ok else np.zeros(0)
         increase = [r["makespan_after_s"] / r["makespan_before_s"] - 1 for r in ok if r["makespan_before_s"] > 0]
         share = [r["discretise_s"] / r["plan_wall_s"] for r in ok if r["plan_wall_s"] > 0]
         violations = [r["motor_violations"] for r in ok if r["motor_violations"] is not None]
+        in_plan = [r["plan_motor_violations"] for r in ok if r.get("plan_motor_violations") is not None]
         out.append({
             "planner": planner, "instrument": instrument, "n": n, "kind": kind, "runs": len(group), "errors": len(group) - len(ok),
+            **({} if governed is None else {"motor_limits": governed}),
+            "runs_complete": sum(r["reached"] == n for r in ok),
+            "plan_motor_violations_total": sum(in_plan) if in_plan else None,
             "segments_median": float(np.median(segments)) if len(segments) else None,
             "segments_p95": float(np.percentile(segments, 95)) if len(segments) else None,
             "segments_max": int(segments.max()) if len(segments) else None,
@@ -105,26 +125,61 @@ def aggregate(rows: list[dict]) -> list[dict]:
     return out
 
 
+def governor_costs(rows: list[dict]) -> list[dict]:
+    """Per set measured with ``--governor``: the governed plan against the ungoverned one, seed by seed."""
+    pairs: dict[tuple, dict[bool, dict]] = {}
+    for row in rows:
+        if "motor_limits" in row and "error" not in row:
+            pairs.setdefault((row["planner"], row["instrument"], row["n"], row["kind"], row["seed"]), {})[row["motor_limits"]] = row
+    sets: dict[tuple, list[dict[bool, dict]]] = {}
+    for key, both in pairs.items():
+        if len(both) == 2:
+            sets.setdefault(key[:4], []).append(both)
+    out = []
+    for (planner, instrument, n, kind), runs in sets.items():
+        ratio = np.array([b[True]["makespan_before_s"] / b[False]["makespan_before_s"] for b in runs])
+        time_ratio = np.array([b[True]["plan_wall_s"] / b[False]["plan_wall_s"] for b in runs])
+        out.append({
+            "planner": planner, "instrument": instrument, "n": n, "kind": kind, "seeds": len(runs),
+            "makespan_ratio_median": float(np.median(ratio)), "makespan_ratio_mean": float(ratio.mean()),
+            "makespan_ratio_p95": float(np.percentile(ratio, 95)), "makespan_ratio_min": float(ratio.min()),
+            "makespan_ratio_max": float(ratio.max()), "plan_time_ratio_median": float(np.median(time_ratio)),
+        })
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--full", action="store_true", help="The issue's sets (hours) instead of the quick ones.")
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument("--full", action="store_true", help="The issue's sets (hours) instead of the quick ones.")
+    which.add_argument("--governor", action="store_true", help="MOONS sets planned with the mpc's motor governor off and on.")
+    parser.add_argument("--only", metavar="INSTRUMENT", help="Keep the sets of this instrument only.")
     args = parser.parse_args()
-    sets = FULL if args.full else QUICK
-    total = sum(len(seeds) for *_, seeds in sets)
+    sets = GOVERNOR if args.governor else FULL if args.full else QUICK
+    if args.only:
+        sets = tuple(s for s in sets if s[1] == args.only)
+        if not sets:
+            parser.error(f"--only {args.only}: no set of that instrument here")
+    modes: tuple[bool | None, ...] = (False, True) if args.governor else (None,)
+    total = sum(len(seeds) for *_, seeds in sets) * len(modes)
     rows: list[dict] = []
-    meta = {"benchmark": "profiles", "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "machine": machine_info(),
-            "sets": [[p, i, n, k, [min(s), max(s)]] for p, i, n, k, s in sets]}
+    meta = {"benchmark": "motor_governor" if args.governor else "profiles", "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+            "machine": machine_info(), "sets": [[p, i, n, k, [min(s), max(s)]] for p, i, n, k, s in sets]}
     for planner, instrument, n, kind, seeds in sets:
         for seed in seeds:
-            rows.append(measure(planner, instrument, n, kind, seed))
-            last = rows[-1]
-            figures = last.get("error") or (f"segments max {last['segments_max']}, violations {last['motor_violations']}, "
-                                            f"{last['discretise_s']:.2f} s / plan {last['plan_wall_s']:.1f} s")
-            print(f"[{len(rows)}/{total}] {planner} {instrument} {n} {kind} seed {seed}: {figures}", flush=True)
-            tmp = args.out.with_suffix(".tmp")
-            tmp.write_text(json.dumps(meta | {"aggregates": aggregate(rows), "rows": rows}, indent=1))
-            tmp.replace(args.out)
+            for mode in modes:
+                rows.append(measure(planner, instrument, n, kind, seed, mode))
+                last = rows[-1]
+                figures = last.get("error") or (f"makespan {last['makespan_before_s']:.2f} s, violations in the plan "
+                                                f"{last['plan_motor_violations']}, after {last['motor_violations']}, segments max "
+                                                f"{last['segments_max']}, {last['discretise_s']:.2f} s / plan {last['plan_wall_s']:.1f} s")
+                label = "" if mode is None else f" motor_limits={mode}"
+                print(f"[{len(rows)}/{total}] {planner} {instrument} {n} {kind} seed {seed}{label}: {figures}", flush=True)
+                extra = {"governor": governor_costs(rows)} if args.governor else {}
+                tmp = args.out.with_suffix(".tmp")
+                tmp.write_text(json.dumps(meta | {"aggregates": aggregate(rows), **extra, "rows": rows}, indent=1))
+                tmp.replace(args.out)
 
 
 if __name__ == "__main__":

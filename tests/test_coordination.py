@@ -12,6 +12,7 @@ import pytest
 
 import fiberplan as fp
 from fiberplan.planners.coordination import leg_scenario
+from fiberplan.planners.coordination.settings import REVERSE_LEG
 from fiberplan.planners.mpc import plan_mpc
 from fiberplan.scenario import scenario_from_dict
 
@@ -30,8 +31,9 @@ def test_unfold_is_the_reverse_of_a_fold(planner):
     assert result.stats["route"] == "auto" and result.stats["chosen"] == "reverse"
     summary = _check(sc, result)
     assert summary["reached"] == summary["targets"] == 19
-    # Played backwards it is a fold from the targets: the same motion, reversed.
-    fold = fp.plan(leg_scenario(sc, sc.target, sc.start, "fold"), planner, {"route": "direct"})
+    # Played backwards it is a fold from the targets: the same motion, reversed (the leg's kind
+    # tells the mpc's motor governor to apply the speed-change rule reversed).
+    fold = fp.plan(leg_scenario(sc, sc.target, sc.start, REVERSE_LEG), planner, {"route": "direct"})
     np.testing.assert_array_equal(result.trajectory.joints, fold.trajectory.joints[::-1])
 
 

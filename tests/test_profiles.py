@@ -23,8 +23,9 @@ from fiberplan.trajectory import Trajectory
 
 @pytest.fixture(scope="module")
 def moons_run() -> fp.PlanResult:
-    """MOONS (capsule model, motor limits stated) 19 unfold seed 1, planned by the mpc."""
-    return fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 1), "mpc")
+    """MOONS (capsule model, motor limits stated) 19 unfold seed 1, planned by the mpc without its
+    motor governor: samples that break the motor limits, for the discretiser to mend."""
+    return fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 1), "mpc", {"motor_limits": False})
 
 
 @pytest.fixture(scope="module")

@@ -17,6 +17,7 @@ from fiberplan._keys import unknown_key_message
 from fiberplan._registry import PLANNERS, planner_names
 from fiberplan.errors import PlannerError, SettingsError
 from fiberplan.instrument import Instrument
+from fiberplan.planners.motors import governs
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult
 
@@ -136,12 +137,39 @@ def plan(
             a second argument: :data:`ProgressCallback`).
     """
     progress = phased(progress)
-    func, settings_cls = _lookup(planner)
+    _, settings_cls = _lookup(planner)
     if not isinstance(settings, settings_cls):
         settings = make_settings(planner, scenario, settings)
     # A planner that starts from others' trajectories (``central``'s warm starts) gets them
     # planned first, with their defaults; their wall time is not the planner's.
     warm = [plan(scenario, name) for name in getattr(settings, "warm_planners", ())]
+    t0 = time.perf_counter()
+    result = _plan_with(scenario, planner, settings, progress, warm)
+    if getattr(settings, "motor_limits", False) and governs(scenario.instrument.motors):
+        # Completion comes first: a governed plan that leaves positioners short is planned again
+        # without the governor, and the one that brings more home is kept (the discretiser then
+        # keeps the motor limits).
+        short = _short(scenario, result)
+        if short:
+            free = _plan_with(scenario, planner, dataclasses.replace(settings, motor_limits=False), progress, warm)
+            if _short(scenario, free) < short:
+                note = (f"{planner}: the motor governor left {short} positioner(s) short; planned again without it, "
+                        f"{_short(scenario, free)} short (the motor limits are left to `fiberplan profiles`)")
+                result = dataclasses.replace(free, stats=free.stats | {"motor_governor": "dropped"}, warnings=(*free.warnings, note))
+            result = dataclasses.replace(result, plan_wall_s=time.perf_counter() - t0)
+    return result
+
+
+def _short(scenario: Scenario, result: PlanResult) -> int:
+    """Positioners with a target that the result leaves short of it."""
+    from fiberplan.metrics import reached_mask
+
+    return int(scenario.has_target.sum() - reached_mask(scenario, result.trajectory).sum())
+
+
+def _plan_with(scenario: Scenario, planner: str, settings: Any, progress: ProgressCallback | None, warm: list[PlanResult]) -> PlanResult:
+    """One run of ``planner`` with these settings (through the coordination layer unless ``route`` is direct)."""
+    func, _ = _lookup(planner)
     t0 = time.perf_counter()
     route = getattr(settings, "route", "direct")
     if route != "direct":

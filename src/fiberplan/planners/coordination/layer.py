@@ -15,6 +15,7 @@ from fiberplan.outcomes import outcome_labels
 from fiberplan.planners.coordination.fork import CHILD_RUNS, RUN_LOG, both
 from fiberplan.planners.coordination.legs import PlanLeg, _park_candidates, complete_leg, leg_scenario
 from fiberplan.planners.coordination.retime import overlap_legs
+from fiberplan.planners.coordination.settings import REVERSE_LEG, UNFOLD_REVERSED_LEG
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult, Trajectory
 
@@ -78,7 +79,7 @@ def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Pie
     """The move planned from the targets back to the starts, played forwards; ``None`` unless
     the reversed plan brings every positioner exactly back to its start."""
     t0 = time.perf_counter()
-    back = leg_scenario(scenario, scenario.target, scenario.start, "reverse")
+    back = leg_scenario(scenario, scenario.target, scenario.start, REVERSE_LEG)
     leg = complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo)
     if not leg.complete:
         return None
@@ -144,7 +145,7 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     hold = _clear_holds(scenario, np.where(movers[:, None], safe, start), movers)
     fold = leg_scenario(scenario, start, hold, "fold")
     back_start = np.where(movers[:, None], home, start)
-    back = leg_scenario(scenario, back_start, hold, "unfold-reversed")
+    back = leg_scenario(scenario, back_start, hold, UNFOLD_REVERSED_LEG)
     # The two legs are independent: the second is planned in a forked process meanwhile.
     first, second = both(
         lambda: complete_leg(fold, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo),

@@ -9,6 +9,11 @@ from fiberplan.settings import setting
 ROUTES = ("direct", "reverse", "via_datum", "via_fold", "auto")
 """Values of the ``route`` setting."""
 
+REVERSE_LEG, UNFOLD_REVERSED_LEG = "reverse", "unfold-reversed"
+REVERSED_LEGS = (REVERSE_LEG, UNFOLD_REVERSED_LEG)
+"""Kinds of the leg scenarios planned backwards in time and played reversed (a planner that
+keeps motor limits applies them reversed there)."""
+
 
 @dataclass(frozen=True)
 class RouteSettings:

@@ -52,6 +52,8 @@ import numpy as np
 from fiberplan.kinematics import fiber_positions, straight_path
 from fiberplan.outcomes import outcome_labels
 from fiberplan.planners import ProgressCallback
+from fiberplan.planners.coordination.settings import REVERSED_LEGS
+from fiberplan.planners.motors import govern, governs
 from fiberplan.planners.mpc.conflicts import build_qp_batch, select_conflicts
 from fiberplan.planners.mpc.deadlock import Deadlocks, Level
 from fiberplan.planners.mpc.executors import make_executor
@@ -119,6 +121,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         if settings.route_progress:
             deadlocks.best_ttg[list(routes)] = np.inf  # measured along their routes
 
+    govern_motors = settings.motor_limits and governs(inst.motors)
     step = 0
     stopped_stalled = False
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
@@ -159,7 +162,17 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             if bad_step.any():
                 q_next[bad_step] = q[bad_step]
                 stats.non_finite_steps += int(bad_step.sum())
-            # --- safety layer: exact distances of what will actually be executed.
+            # --- the motors' limits (stop before reversing, speed change, minimum speed), except for
+            # positioners stalled or climbing the deadlock ladder (completion first: their fine
+            # moves are left to the discretiser); then the safety layer: exact distances of what
+            # will actually be executed.
+            if govern_motors:
+                proposed = q_next
+                q_next = govern(q, q_next, v_prev * inst.speeds_rad_s, goal, h, inst.motors, inst.speeds_rad_s, inst.limits_rad,
+                                reverse=scenario.kind in REVERSED_LEGS)
+                free = stalled | (deadlocks.level != Level.NORMAL)
+                q_next[free] = proposed[free]
+                governed = np.any(q_next != proposed, axis=1)
             q_next, held, iters = safety.apply(q, q_next, c_now, partial(outranks, rank=rank, defer_to=deadlocks.wait_first))
             stats.safety_holds += int(held.sum())
             stats.safety_iterations_max = max(stats.safety_iterations_max, iters)
@@ -169,8 +182,10 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             shifted = np.concatenate([new_plan[:, 1:], tail[:, None]], axis=1)
             # A stopped positioner publishes its intention one step late, but linearises its
             # own next QP around where it actually is (holding).
-            plan = np.where(held[:, None, None], new_plan, shifted)
-            own_plan = np.where(held[:, None, None], q_next[:, None, :], shifted)
+            # A positioner the governor slowed or stopped does the same.
+            late = held | governed if govern_motors else held
+            plan = np.where(late[:, None, None], new_plan, shifted)
+            own_plan = np.where(late[:, None, None], q_next[:, None, :], shifted)
             v_prev = (q_next - q) / step_rad
             safety.refresh(c_now, q, q_next)  # clearances change only for pairs with a moving positioner
             q = q_next
