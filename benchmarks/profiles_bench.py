@@ -51,7 +51,7 @@ FULL = (  # the quick sets first: a run stopped for time keeps them
 
 GOVERNOR = (
     ("mpc", "moons-capsules", 61, "unfold", range(50)),
-    ("mpc", "moons", 61, "unfold", range(20)),
+    ("mpc", "moons", 61, "unfold", range(10)),
 )
 
 
