@@ -167,6 +167,45 @@ def segment_distance(
     return dist, s, t
 
 
+def segment_distance_only(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+    """The distance of :func:`segment_distance` alone, bit for bit (squared distances compared,
+    one square root: ``sqrt`` is monotone and correctly rounded), without the closest points'
+    parameters, for the searches that need only the distance."""
+    p0x, p0y, p1x, p1y = p0[..., 0], p0[..., 1], p1[..., 0], p1[..., 1]
+    q0x, q0y, q1x, q1y = q0[..., 0], q0[..., 1], q1[..., 0], q1[..., 1]
+    d1x, d1y = p1x - p0x, p1y - p0y
+    d2x, d2y = q1x - q0x, q1y - q0y
+    a = d1x * d1x + d1y * d1y
+    e = d2x * d2x + d2y * d2y
+    a_nz, e_nz = a > 0.0, e > 0.0
+    a_safe, e_safe = np.where(a_nz, a, 1.0), np.where(e_nz, e, 1.0)
+    sq = np.minimum(
+        np.minimum(_point_segment_sq_safe(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe),
+                   _point_segment_sq_safe(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)),
+        np.minimum(_point_segment_sq_safe(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe),
+                   _point_segment_sq_safe(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)),
+    )
+    rx, ry = q0x - p0x, q0y - p0y
+    side_q0 = d1x * ry - d1y * rx
+    side_q1 = d1x * (q1y - p0y) - d1y * (q1x - p0x)
+    side_p0 = d2x * (-ry) - d2y * (-rx)
+    side_p1 = d2x * (p1y - q0y) - d2y * (p1x - q0x)
+    crossing = (side_q0 * side_q1 < 0.0) & (side_p0 * side_p1 < 0.0)
+    return np.where(crossing, 0.0, np.sqrt(sq))
+
+
+def _point_segment_sq_safe(
+    px: np.ndarray, py: np.ndarray, ax: np.ndarray, ay: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+    nonzero: np.ndarray, safe_dd: np.ndarray,
+) -> np.ndarray:
+    """The square of :func:`point_to_segment`'s distance, with the same arithmetic."""
+    u = np.minimum(np.maximum(((px - ax) * dx + (py - ay) * dy) / safe_dd, 0.0), 1.0)
+    u = np.where(nonzero, u, 0.0)
+    ex = px - (ax + u * dx)
+    ey = py - (ay + u * dy)
+    return ex * ex + ey * ey
+
+
 def _point_segment_sq(
     px: np.ndarray, py: np.ndarray, ax: np.ndarray, ay: np.ndarray, dx: np.ndarray, dy: np.ndarray, dd: np.ndarray,
 ) -> np.ndarray:
@@ -179,7 +218,7 @@ def _point_segment_sq(
 
 def combo_clearances(
     instrument: Instrument, p_start: np.ndarray, p_end: np.ndarray, q_start: np.ndarray, q_end: np.ndarray,
-    smallest: bool = False,
+    smallest: bool = False, exact_below: float | None = None,
 ) -> np.ndarray:
     """Clearances ``(..., K)`` of the capsule combinations between two positioners' capsules.
 
@@ -188,13 +227,18 @@ def combo_clearances(
     combination the cheapest formula its capsule shapes allow (a disc is a zero-length
     segment): point to point, point to segment, or segment to segment. The capsule arrays are
     ``(..., C, 2)`` with broadcastable leading axes. With ``smallest``, only the smallest
-    clearance over the combinations, shape ``(...)``.
+    clearance over the combinations, shape ``(...)``; then, on an instrument with polygon zones,
+    ``exact_below`` (see :func:`fiberplan.zones.smallest`) skips the exact distances of zone
+    pairs whose enclosing discs keep at least that much clearance: the result still decides
+    ``>= t`` exactly for every threshold ``t <= exact_below``.
     """
     if instrument.polygons:
         from fiberplan import zones
 
         if smallest:
-            return zones.smallest(instrument, p_start, p_end, q_start, q_end)
+            if exact_below is None:
+                return zones.smallest(instrument, p_start, p_end, q_start, q_end)
+            return zones.smallest(instrument, p_start, p_end, q_start, q_end, exact_below)
         lead = np.broadcast_shapes(p_start.shape[:-2], q_start.shape[:-2])
         c = p_start.shape[-2]
         flat = [np.broadcast_to(a, (*lead, c, 2)).reshape(-1, c, 2) for a in (p_start, p_end, q_start, q_end)]

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fiberplan.errors import InstrumentError
-from fiberplan.geometry import _EPS, PairClearance, capsule_segments, capsule_tables, joint_gradients, segment_distance
+from fiberplan.geometry import _EPS, PairClearance, capsule_segments, capsule_tables, joint_gradients, segment_distance, segment_distance_only
 from fiberplan.instrument import Instrument
 
 EXACT_BELOW_MM = 3.0
@@ -120,11 +120,9 @@ def _bound(tables: _Tables, zp: _ZonePair, ci: np.ndarray, cj: np.ndarray) -> np
     return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) - tables.disc_radius[zp.zone_a] - tables.disc_radius[zp.zone_b]
 
 
-def _exact(zp: _ZonePair, rows: np.ndarray, si: np.ndarray, ei: np.ndarray, sj: np.ndarray, ej: np.ndarray,
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Segment distances, ``s``, ``t`` ``(R, Kz)`` of the zone pair's combos for the rows ``rows``."""
-    r = rows[:, None]
-    return segment_distance(si[r, zp.ca[None, :]], ei[r, zp.ca[None, :]], sj[r, zp.cb[None, :]], ej[r, zp.cb[None, :]])
+def _exact(zp: _ZonePair, si: np.ndarray, ei: np.ndarray, sj: np.ndarray, ej: np.ndarray) -> np.ndarray:
+    """Segment distances ``(R, Kz)`` of the zone pair's combos for capsule ends ``(R, C, 2)``."""
+    return segment_distance_only(si[:, zp.ca], ei[:, zp.ca], sj[:, zp.cb], ej[:, zp.cb])
 
 
 def _depth(zp: _ZonePair, rows: np.ndarray, si: np.ndarray, ei: np.ndarray, sj: np.ndarray, ej: np.ndarray) -> np.ndarray:
@@ -239,7 +237,7 @@ def smallest(instrument: Instrument, start_i: np.ndarray, end_i: np.ndarray, sta
         si, ei = _rows(start_i, lead, near), _rows(end_i, lead, near)
         sj, ej = _rows(start_j, lead, near), _rows(end_j, lead, near)
         rows = np.arange(len(near))
-        value = (_exact(zp, rows, si, ei, sj, ej)[0] - zp.radii).min(axis=1)
+        value = (_exact(zp, si, ei, sj, ej) - zp.radii).min(axis=1)
         overlap = bound[near] <= 0.0
         if overlap.any() and (zp.poly_a or zp.poly_b):
             depth = _depth(zp, rows[overlap], si, ei, sj, ej)

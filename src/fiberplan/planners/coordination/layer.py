@@ -19,9 +19,6 @@ from fiberplan.planners.coordination.settings import REVERSE_LEG, UNFOLD_REVERSE
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult, Trajectory
 
-ROUTES = ("direct", "reverse", "via_datum", "via_fold", "auto")
-"""Values of the ``route`` setting."""
-
 DENSE_REACH = 0.8
 """Patrol regions overlap densely when the reach exceeds this fraction of the pitch (MOONS,
 SDSS: 1.0; DESI: 0.58): there the two-leg plan comes first and bounds the direct attempt."""

@@ -272,10 +272,12 @@ class StartScheduler:
         return who[np.lexsort((who, -self.move[who]))].tolist()
 
     # ------------------------------------------------------------------ delays on the straight move
-    def _moving_min(self, i: np.ndarray | np.integer, ti: np.ndarray, j: np.ndarray, tj: np.ndarray) -> np.ndarray:
-        """Clearance of ``i`` after ``ti`` steps of its move to ``j`` after ``tj`` (index arrays, broadcast)."""
+    def _moving_min(self, i: np.ndarray | np.integer, ti: np.ndarray, j: np.ndarray, tj: np.ndarray,
+                    exact_below: float | None = None) -> np.ndarray:
+        """Clearance of ``i`` after ``ti`` steps of its move to ``j`` after ``tj`` (index arrays,
+        broadcast); exact below ``exact_below`` (default: everywhere), a lower bound at least that above."""
         s, e = self.seg_start, self.seg_end
-        return combo_clearances(self.inst, s[i, ti], e[i, ti], s[j, tj], e[j, tj], smallest=True)
+        return combo_clearances(self.inst, s[i, ti], e[i, ti], s[j, tj], e[j, tj], smallest=True, exact_below=exact_below)
 
     def _fits(self, i: int, delays: np.ndarray, js: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """(D, J): whether ``i`` delayed by each of ``delays`` keeps its margin to each ``j``."""
@@ -286,8 +288,9 @@ class StartScheduler:
         t = np.unique(np.concatenate([times[(times >= t_lo) & (times <= t_hi)], [t_lo, min(t_hi, horizon)]]))
         ti = np.clip(t[None, None, :] - delays[:, None, None], 0, horizon)  # (D, 1, K)
         tj = np.clip(t[None, None, :] - delay[js][None, :, None], 0, horizon)  # (1, J, K)
-        c = self._moving_min(np.int64(i), ti, js[None, :, None], tj).min(axis=2)  # (D, J)
-        return c >= self.floor[rows][None, :]
+        floor = self.floor[rows]
+        c = self._moving_min(np.int64(i), ti, js[None, :, None], tj, exact_below=float(floor.max())).min(axis=2)  # (D, J)
+        return c >= floor[None, :]
 
     def _place(self, i: int) -> tuple[int | None, np.ndarray, np.ndarray, np.ndarray]:
         """Smallest fitting delay of ``i`` against the scheduled neighbours, else ``None``
@@ -398,7 +401,7 @@ class StartScheduler:
             if len(close) == 0:
                 continue
             ok = combo_clearances(self.inst, c_start[close][:, None], c_end[close][:, None], j_start[None], j_end[None],
-                                  smallest=True) >= self.floor[row]
+                                  smallest=True, exact_below=float(self.floor[row])) >= self.floor[row]
             ok = ok[:, inv]  # (close, samples)
             blocks.append((j, close, ok[:, self.window].all(axis=2)))
         return _TimedGrid(grid, s_cell, g_cell, blocks)
