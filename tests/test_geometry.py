@@ -7,7 +7,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from fiberplan.geometry import capsule_segments, capsule_tables, combo_clearances, pair_clearance, segment_distance
+from fiberplan.geometry import capsule_segments, capsule_tables, combo_clearances, pair_clearance, segment_distance, segment_distance_only
 from fiberplan.instrument_io import load_instrument
 
 coord = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
@@ -65,6 +65,17 @@ def test_segment_distance_matches_brute_force_and_is_symmetric(p0, p1, q0, q1, d
     assert d == pytest.approx(convex_reference_distance(p0, p1, q0, q1), abs=1e-6)
     # the closest points really are that far apart
     assert np.linalg.norm(p0 + s * (p1 - p0) - (q0 + t * (q1 - q0))) == pytest.approx(float(d), abs=1e-9)
+
+
+@settings(max_examples=300, deadline=None)
+@given(p0=point, p1=point, q0=point, q1=point, degenerate=st.sampled_from(["none", "p", "q", "both"]))
+def test_the_distance_alone_is_segment_distances_bit_for_bit(p0, p1, q0, q1, degenerate):
+    p0, p1, q0, q1 = map(np.array, (p0, p1, q0, q1))
+    if degenerate in ("p", "both"):
+        p1 = p0.copy()
+    if degenerate in ("q", "both"):
+        q1 = q0.copy()
+    assert segment_distance_only(p0, p1, q0, q1) == segment_distance(p0, p1, q0, q1)[0]
 
 
 def test_segment_distance_is_vectorised():

@@ -63,6 +63,21 @@ def test_zone_clearance_matches_a_brute_force_reference_and_is_symmetric(qi, qj,
         assert ref < 0.05 or c < 0
 
 
+@settings(max_examples=25, deadline=None)
+@given(threshold=st.floats(-1.0, zones.EXACT_BELOW_MM), seed=st.integers(0, 2**16))
+def test_a_lower_exact_below_decides_every_threshold_under_it_as_the_exact_values_do(threshold, seed):
+    """The start schedule's searches ask ``>= floor`` with ``exact_below = floor``: the same answers."""
+    rng = np.random.default_rng(seed)
+    q = np.stack([rng.uniform(-np.pi, np.pi, 200), rng.uniform(*MOONS.beta_limits_rad, 200)], axis=1)
+    angle = rng.uniform(0, 2 * np.pi, 200)
+    bases = np.concatenate([np.zeros((200, 2)), PITCH * np.stack([np.cos(angle), np.sin(angle)], axis=1)])
+    start, end = capsule_segments(MOONS, bases, np.zeros(400), np.concatenate([q, q[::-1]]))
+    exact = zones.smallest(MOONS, start[:200], end[:200], start[200:], end[200:])
+    cheap = zones.smallest(MOONS, start[:200], end[:200], start[200:], end[200:], exact_below=threshold)
+    np.testing.assert_array_equal(cheap >= threshold, exact >= threshold)
+    assert np.any(exact < zones.EXACT_BELOW_MM)  # the draw has near pairs to decide
+
+
 def test_a_zone_inside_a_polygon_is_a_collision():
     inst = fp.Instrument(
         name="nested", pitch_mm=20.0, alpha_arm_mm=5.0, beta_arm_mm=10.0, alpha_speed_rad_s=1.0, beta_speed_rad_s=1.0,
