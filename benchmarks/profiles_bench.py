@@ -11,7 +11,7 @@ time. Writes one JSON file (rows and aggregates, with the machine)::
     python benchmarks/profiles_bench.py --governor --out benchmarks/results/motor_governor.json  # the mpc with and without
                                                                                                # its motor governor
 
-``--only INSTRUMENT`` keeps the sets of one instrument. With ``--governor`` each run is planned
+``--only INSTRUMENT`` keeps the sets of one instrument, ``--seeds A:B`` the seeds A to B - 1. With ``--governor`` each run is planned
 twice, with the mpc's ``motor_limits`` off and on (:mod:`fiberplan.planners.motors`); the
 aggregates then compare the two: the motor limits broken in the plan's own samples and after
 discretisation, and what the governor costs in makespan.
@@ -155,12 +155,20 @@ def main() -> None:
     which.add_argument("--full", action="store_true", help="The issue's sets (hours) instead of the quick ones.")
     which.add_argument("--governor", action="store_true", help="MOONS sets planned with the mpc's motor governor off and on.")
     parser.add_argument("--only", metavar="INSTRUMENT", help="Keep the sets of this instrument only.")
+    parser.add_argument("--seeds", metavar="A:B", help="Keep the seeds A to B - 1 of each set (to finish a set stopped for time).")
     args = parser.parse_args()
     sets = GOVERNOR if args.governor else FULL if args.full else QUICK
     if args.only:
         sets = tuple(s for s in sets if s[1] == args.only)
         if not sets:
             parser.error(f"--only {args.only}: no set of that instrument here")
+    if args.seeds:
+        try:
+            first, stop = (int(v) for v in args.seeds.split(":"))
+        except ValueError:
+            parser.error(f"--seeds {args.seeds}: give A:B, two integers")
+        sets = tuple((*s[:4], range(max(first, s[4].start), min(stop, s[4].stop))) for s in sets)
+        sets = tuple(s for s in sets if len(s[4]))
     modes: tuple[bool | None, ...] = (False, True) if args.governor else (None,)
     total = sum(len(seeds) for *_, seeds in sets) * len(modes)
     rows: list[dict] = []

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fiberplan.geometry import capsule_segments, capsule_tables, motion_bound, point_extents, point_to_segment, segment_distance
+from fiberplan.geometry import capsule_segments, capsule_tables, motion_bound, point_extents, point_to_segment, segment_distance_only
 from fiberplan.planners.mpc.grid import JointGrid, clearance_to, cross_clearance, densify
 from fiberplan.scenario import Scenario
 
@@ -43,9 +43,11 @@ class DetourGrid(JointGrid):
         self.threshold = clear_mm + 0.5 * float(motion_bound(point_extents(inst), self.cell))
         self.end_clear_mm, self.end_cells = end_clear_mm, end_cells
         self._memo: dict[tuple[int, float, float, float], np.ndarray] = {}  # (j, q_j, cutoff) -> clearances
-        ca = capsule_tables(inst)[3][:, 0]
-        a = self.seg_start[:, ca]  # (cells, K, 2): i's capsule of each same-layer combination
-        d = self.seg_end[:, ca] - a
+        # i's capsules that take part in a same-layer combination (each once: many-edged zones
+        # have many combinations per capsule), and each combination's capsule among them.
+        used, self._combo_capsule = np.unique(capsule_tables(inst)[3][:, 0], return_inverse=True)
+        a = self.seg_start[:, used]  # (cells, U, 2)
+        d = self.seg_end[:, used] - a
         dd = d[..., 0] ** 2 + d[..., 1] ** 2
         self._lb_tables = (a, d, dd > 0, np.where(dd > 0, dd, 1.0))
 
@@ -78,14 +80,13 @@ class DetourGrid(JointGrid):
             # Lower bound: distance from j's base to i's capsule minus the farthest point of j's capsule from its base.
             base = self.scenario.base_xy[j]
             reach = np.maximum(np.linalg.norm(o_start[k] - base, axis=-1), np.linalg.norm(o_end[k] - base, axis=-1))[cb]
-            dist, _ = point_to_segment(base[0], base[1], a[..., 0], a[..., 1], d[..., 0], d[..., 1], nz, safe)
-            lb = (dist - reach - radii).min(axis=1)
+            dist, _ = point_to_segment(base[0], base[1], a[..., 0], a[..., 1], d[..., 0], d[..., 1], nz, safe)  # (cells, U)
+            lb = (dist[:, self._combo_capsule] - reach - radii).min(axis=1)
             close = np.flatnonzero(lb < cutoff)
             c = lb
             if len(close):
-                exact, _, _ = segment_distance(self.seg_start[close][:, ca], self.seg_end[close][:, ca], o_start[k][cb], o_end[k][cb])
                 c = lb.copy()
-                c[close] = (exact - radii).min(axis=1)
+                c[close] = _smallest_clearance(self.seg_start[close][:, ca], self.seg_end[close][:, ca], o_start[k][cb], o_end[k][cb], radii)
             res.append(c)
         return res
 
@@ -230,3 +231,24 @@ def pair_resolution(
     from_wait = np.concatenate([w_grid.waypoints(d_to, cell, reverse=True), goal[waiter][None, :]])
     return PairResolution(first, waiter, first_route, wait_q, to_wait, from_wait)
 
+
+
+def _smallest_clearance(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """``(segment_distance_only(p0, p1, q0, q1) - radii).min(axis=1)`` for ``p (R, K, 2)`` and
+    ``q (K, 2)``, bit for bit, with exact distances only for the combinations that can hold the
+    minimum: each combination's lower bound (its segments' midpoints' distance less their half
+    lengths and the radii) is compared with the exact clearance of the combination whose bound is
+    lowest, an upper bound of the minimum (many-edged zones: most combinations are far)."""
+    mid_p, mid_q = 0.5 * (p0 + p1), 0.5 * (q0 + q1)
+    half_p = 0.5 * np.hypot(p1[..., 0] - p0[..., 0], p1[..., 1] - p0[..., 1])
+    half_q = 0.5 * np.hypot(q1[..., 0] - q0[..., 0], q1[..., 1] - q0[..., 1])
+    gap = mid_p - mid_q
+    lower = np.hypot(gap[..., 0], gap[..., 1]) - half_p - half_q - radii  # (R, K)
+    rows = np.arange(len(p0))
+    first = np.argmin(lower, axis=1)
+    upper = segment_distance_only(p0[rows, first], p1[rows, first], q0[first], q1[first]) - radii[first]  # (R,)
+    r, k = np.nonzero(lower - 1e-9 < upper[:, None])  # a margin for the bound's rounding
+    out = upper.copy()
+    if len(r):
+        np.minimum.at(out, r, segment_distance_only(p0[r, k], p1[r, k], q0[k], q1[k]) - radii[k])
+    return out
