@@ -114,3 +114,22 @@ def test_bad_detour_settings_are_rejected():
     sc = make_scenario("desi", 7, "random", 0)
     with pytest.raises(PlannerError, match="detour_max"):
         make_settings("mpc", sc, {"detour_max": 0})
+
+
+def test_the_pruned_smallest_clearance_is_the_full_minimum_bit_for_bit():
+    """The detour grid's clearance takes exact distances only for the combinations that can
+    hold the minimum; the result is the full minimum's bits, degenerate segments included."""
+    from fiberplan.geometry import segment_distance_only
+    from fiberplan.planners.mpc.detour import _smallest_clearance
+
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        r, k = int(rng.integers(1, 50)), int(rng.integers(1, 140))
+        p0 = rng.normal(size=(r, k, 2)) * 10
+        p1 = p0 + rng.normal(size=(r, k, 2)) * rng.choice([0, 1, 5])
+        q0 = rng.normal(size=(k, 2)) * 10
+        q1 = q0 + rng.normal(size=(k, 2)) * rng.choice([0, 1, 5])
+        radii = rng.uniform(0, 2, k)
+        full = (segment_distance_only(p0, p1, q0, q1) - radii).min(axis=1)
+        half = 0.5 * np.hypot(p1[..., 0] - p0[..., 0], p1[..., 1] - p0[..., 1])
+        np.testing.assert_array_equal(_smallest_clearance(p0, p1, q0, q1, radii, 0.5 * (p0 + p1), half), full)

@@ -50,6 +50,9 @@ class DetourGrid(JointGrid):
         d = self.seg_end[:, used] - a
         dd = d[..., 0] ** 2 + d[..., 1] ** 2
         self._lb_tables = (a, d, dd > 0, np.where(dd > 0, dd, 1.0))
+        # Each capsule's midpoint and half length at every cell (the combinations' bounds).
+        self._mid = 0.5 * (self.seg_start + self.seg_end)
+        self._half = 0.5 * np.hypot(self.seg_end[..., 0] - self.seg_start[..., 0], self.seg_end[..., 1] - self.seg_start[..., 1])
 
     def clearance(self, others: np.ndarray, q_others: np.ndarray, cutoff: float) -> np.ndarray:
         """Clearance of every cell to ``others`` held at ``q_others``, exact where below ``cutoff``
@@ -86,7 +89,8 @@ class DetourGrid(JointGrid):
             c = lb
             if len(close):
                 c = lb.copy()
-                c[close] = _smallest_clearance(self.seg_start[close][:, ca], self.seg_end[close][:, ca], o_start[k][cb], o_end[k][cb], radii)
+                c[close] = _smallest_clearance(self.seg_start[close][:, ca], self.seg_end[close][:, ca], o_start[k][cb], o_end[k][cb], radii,
+                                               self._mid[close][:, ca], self._half[close][:, ca])
             res.append(c)
         return res
 
@@ -233,14 +237,15 @@ def pair_resolution(
 
 
 
-def _smallest_clearance(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray, radii: np.ndarray) -> np.ndarray:
+def _smallest_clearance(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray, radii: np.ndarray, mid_p: np.ndarray,
+                        half_p: np.ndarray) -> np.ndarray:
     """``(segment_distance_only(p0, p1, q0, q1) - radii).min(axis=1)`` for ``p (R, K, 2)`` and
     ``q (K, 2)``, bit for bit, with exact distances only for the combinations that can hold the
     minimum: each combination's lower bound (its segments' midpoints' distance less their half
     lengths and the radii) is compared with the exact clearance of the combination whose bound is
-    lowest, an upper bound of the minimum (many-edged zones: most combinations are far)."""
-    mid_p, mid_q = 0.5 * (p0 + p1), 0.5 * (q0 + q1)
-    half_p = 0.5 * np.hypot(p1[..., 0] - p0[..., 0], p1[..., 1] - p0[..., 1])
+    lowest, an upper bound of the minimum (many-edged zones: most combinations are far).
+    ``mid_p``, ``half_p``: the ``p`` segments' midpoints and half lengths."""
+    mid_q = 0.5 * (q0 + q1)
     half_q = 0.5 * np.hypot(q1[..., 0] - q0[..., 0], q1[..., 1] - q0[..., 1])
     gap = mid_p - mid_q
     lower = np.hypot(gap[..., 0], gap[..., 1]) - half_p - half_q - radii  # (R, K)
