@@ -195,3 +195,31 @@ def test_attempts_with_no_time_left_stay_at_the_start():
     joints, runs, complete = _attempts(sc, lambda *a, **k: pytest.fail("no planner run expected"), 2, 0.0, False, False)
     np.testing.assert_array_equal(joints, sc.start[None])
     assert runs == 1 and not complete
+
+
+def test_when_every_route_leaves_positioners_short_the_fallback_planner_plans_the_whole_move(monkeypatch):
+    """The fallback planner (the dnf for the mpc) alone over the whole move, with its own route,
+    is a candidate once this planner's routes leave positioners short; the result says so."""
+    from fiberplan.planners.coordination import layer
+
+    real, calls = layer._strategies, []
+
+    def nobody_moves_at_first(scenario, route, plan_leg, opts, consider):
+        calls.append(route)
+        if len(calls) > 1:  # the fallback planner's own run
+            return real(scenario, route, plan_leg, opts, consider)
+        consider("direct", [layer._Piece("direct", scenario.start[None].copy(), [], 1, 0.0)])
+        return "general"
+
+    monkeypatch.setattr(layer, "_strategies", nobody_moves_at_first)
+    sc = fp.make_scenario("desi", 19, "random", 1)
+    result = fp.plan(sc, "mpc")
+    summary = _check(sc, result)
+    assert summary["reached"] == 19
+    assert result.stats["chosen"] == "fallback planner"
+    assert result.stats["legs"][0]["leg"] == "fallback planner (dnf)"
+    assert any("planned by the fallback planner dnf alone" in w for w in result.warnings)
+    # Without a fallback planner nothing else is tried.
+    calls.clear()
+    alone = fp.plan(sc, "mpc", {"route_fallback_planner": None})
+    assert alone.stats["chosen"] == "direct" and fp.summarize(alone)["reached"] == 0
