@@ -15,11 +15,13 @@ limits and hard stops, and starts where the original ended. So (``formulations/c
   better of a **fix-up** (the direct plan until its last arrival, then only the positioners
   still short, and the neighbours they need, through the datum, everyone else holding) and the
   **two-leg** plan. It is never worse than the two-leg plan: a candidate slower than it, or
-  leaving more short, is not returned. Whatever the first choice, if it is incomplete the
-  direct plan is the fallback;
+  leaving more short, is not returned. Whatever the first choice, if it leaves positioners
+  short the fallback planner plans the whole move alone (its own route), then the direct plan
+  is the fallback;
 - ``direct``: the planner alone.
 
-Every leg is planned by the same planner (``mpc`` or ``dnf``, so that comparisons stay fair),
+Every leg is planned by the same planner (``mpc`` or ``dnf``, so that comparisons stay fair;
+the fallback planner only where this one leaves positioners short, and the result names it),
 completed by further attempts from where the previous one stopped (each attempt is the same
 planner from a new start, which breaks the state of a deadlock), shortened by restarts from
 where most of its positioners had arrived (``legs``), and the legs are joined at configurations
