@@ -108,11 +108,8 @@ def point_to_segment(
     """Distance from points ``p`` to segments ``a + u d`` and the parameter ``u`` (components
     apart: these arrays are small and numpy's per-call cost dominates). ``nonzero`` marks
     segments of positive length ``dd = d . d``; ``safe_dd`` is ``dd`` with zeros replaced by 1."""
-    u = np.minimum(np.maximum(((px - ax) * dx + (py - ay) * dy) / safe_dd, 0.0), 1.0)
-    u = np.where(nonzero, u, 0.0)
-    ex = px - (ax + u * dx)
-    ey = py - (ay + u * dy)
-    return np.sqrt(ex * ex + ey * ey), u
+    sq, u = _point_segment_sq_safe(px, py, ax, ay, dx, dy, nonzero, safe_dd)
+    return np.sqrt(sq), u
 
 
 def segment_distance(
@@ -180,10 +177,10 @@ def segment_distance_only(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np
     a_nz, e_nz = a > 0.0, e > 0.0
     a_safe, e_safe = np.where(a_nz, a, 1.0), np.where(e_nz, e, 1.0)
     sq = np.minimum(
-        np.minimum(_point_segment_sq_safe(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe),
-                   _point_segment_sq_safe(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)),
-        np.minimum(_point_segment_sq_safe(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe),
-                   _point_segment_sq_safe(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)),
+        np.minimum(_point_segment_sq_safe(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)[0],
+                   _point_segment_sq_safe(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)[0]),
+        np.minimum(_point_segment_sq_safe(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)[0],
+                   _point_segment_sq_safe(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)[0]),
     )
     rx, ry = q0x - p0x, q0y - p0y
     side_q0 = d1x * ry - d1y * rx
@@ -197,13 +194,13 @@ def segment_distance_only(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np
 def _point_segment_sq_safe(
     px: np.ndarray, py: np.ndarray, ax: np.ndarray, ay: np.ndarray, dx: np.ndarray, dy: np.ndarray,
     nonzero: np.ndarray, safe_dd: np.ndarray,
-) -> np.ndarray:
-    """The square of :func:`point_to_segment`'s distance, with the same arithmetic."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`point_to_segment`'s squared distance and parameter ``u`` (the one arithmetic both use)."""
     u = np.minimum(np.maximum(((px - ax) * dx + (py - ay) * dy) / safe_dd, 0.0), 1.0)
     u = np.where(nonzero, u, 0.0)
     ex = px - (ax + u * dx)
     ey = py - (ay + u * dy)
-    return ex * ex + ey * ey
+    return ex * ex + ey * ey, u
 
 
 def _point_segment_sq(
