@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import time
 from collections.abc import Callable
@@ -246,14 +247,23 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
     return "general"
 
 
+_WHOLE_FALLBACK = contextvars.ContextVar("whole_fallback", default=False)
+"""Set while a fallback planner plans a whole move: it is not handed back (the mpc and the dnf
+are each other's fallback)."""
+
+
 def _whole_by_fallback(scenario: Scenario, fallback: str, dt: float) -> list[_Piece] | None:
     """The whole move planned by the fallback planner with its own defaults (its own route
-    through this layer, without a fallback of its own), as one piece; ``None`` if its control
-    step differs (the pieces share one time grid)."""
+    through this layer, and its own fallback inside its legs, but no whole move handed back), as
+    one piece; ``None`` if its control step differs (the pieces share one time grid)."""
     from fiberplan.planners import plan
 
     t0 = time.perf_counter()
-    result = plan(scenario, fallback, {"route_fallback_planner": None})
+    token = _WHOLE_FALLBACK.set(True)
+    try:
+        result = plan(scenario, fallback)
+    finally:
+        _WHOLE_FALLBACK.reset(token)
     times = result.trajectory.times
     if len(times) > 1 and not np.allclose(np.diff(times), dt, rtol=1e-9, atol=0.0):
         return None
@@ -310,9 +320,9 @@ def coordinate(
     def short() -> bool:
         return not candidates or min(_score(scenario, _join(scenario, p, dt))[0] for p in candidates.values()) > 0
 
-    if short() and fallback:
-        # Positioners left short: the fallback planner alone over the whole move, with its own
-        # route (inside a leg it is tried only from where an attempt stalled, when the tangle may
+    if short() and fallback and not _WHOLE_FALLBACK.get():
+        # Positioners left short: the fallback planner over the whole move, with its own route
+        # (inside a leg it is tried only from where an attempt stalled, when the tangle may
         # already be beyond it). MOONS 7 random seed 4 under MOONS' zones: 7 of 7 this way, 3 of 7
         # by the mpc's direct plan.
         consider("fallback planner", _whole_by_fallback(scenario, fallback, dt))
