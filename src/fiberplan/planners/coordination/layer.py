@@ -351,7 +351,7 @@ def coordinate(
     short = scenario.has_target & ~np.all(final == scenario.target, axis=1) & ~reached_mask(scenario, trajectory)
     warnings = []
     if chosen == "fallback planner":
-        warnings.append(f"{planner} ({route}): the move was planned by the fallback planner {fallback} alone (this planner's routes "
+        warnings.append(f"{planner} ({route}): the move was planned by the fallback planner {fallback} (this planner's routes "
                         f"left positioners short: {', '.join(e['strategy'] for e in tried if e['strategy'] != chosen)})")
     if short.any():
         warnings.append(f"{planner} ({route}): {int(short.sum())} of {int(scenario.has_target.sum())} positioners did not reach their "
