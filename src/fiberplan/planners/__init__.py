@@ -17,7 +17,6 @@ from fiberplan._keys import unknown_key_message
 from fiberplan._registry import PLANNERS, planner_names
 from fiberplan.errors import PlannerError, SettingsError
 from fiberplan.instrument import Instrument
-from fiberplan.planners.motors import governs
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult
 
@@ -145,6 +144,8 @@ def plan(
     warm = [plan(scenario, name) for name in getattr(settings, "warm_planners", ())]
     t0 = time.perf_counter()
     result = _plan_with(scenario, planner, settings, progress, warm)
+    from fiberplan.planners.motors import governs  # here: importing the verifier loads no planner module
+
     if getattr(settings, "motor_limits", False) and governs(scenario.instrument.motors):
         # Completion comes first: a governed plan that leaves positioners short is planned again
         # without the governor, and the one that brings more home is kept (the discretiser then
