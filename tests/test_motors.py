@@ -103,8 +103,10 @@ def test_a_governed_plan_left_short_is_planned_again_without_the_governor(monkey
 
     monkeypatch.setattr(planners, "_plan_with", cut_when_governed)
     scenario = fp.make_scenario("moons-capsules", 7, "random", 1)
-    result = fp.plan(scenario, "mpc", {"route": "direct"})
+    phases = []
+    result = fp.plan(scenario, "mpc", {"route": "direct"}, progress=lambda fraction, phase=None: phases.append(phase))
     assert fp.summarize(result)["reached"] == 7
+    assert "again without the motor governor: control loop" in phases  # the progress bar says why it starts again
     assert result.stats["motor_governor"] == "dropped"
     assert any("motor governor left 7 positioner(s) short" in w for w in result.warnings)
     assert not fp.plan(fp.make_scenario("desi", 7, "random", 1), "mpc", {"route": "direct"}).stats.get("motor_governor")

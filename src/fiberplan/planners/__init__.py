@@ -152,7 +152,14 @@ def plan(
         # keeps the motor limits).
         short = _short(scenario, result)
         if short:
-            free = _plan_with(scenario, planner, dataclasses.replace(settings, motor_limits=False), progress, warm)
+            again = None
+            if progress is not None:
+                outer = progress
+
+                def again(fraction: float, phase: str | None = None) -> None:
+                    outer(fraction, "again without the motor governor" + (f": {phase}" if phase else ""))
+
+            free = _plan_with(scenario, planner, dataclasses.replace(settings, motor_limits=False), again, warm)
             if _short(scenario, free) < short:
                 note = (f"{planner}: the motor governor left {short} positioner(s) short; planned again without it, "
                         f"{_short(scenario, free)} short (the motor limits are left to `fiberplan profiles`)")
