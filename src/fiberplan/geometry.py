@@ -112,6 +112,32 @@ def point_to_segment(
     return np.sqrt(sq), u
 
 
+def _segment_parts(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> tuple[tuple, tuple, tuple]:
+    """The end points' components, the two directions, and which segments have positive length
+    (with their squared lengths, zeros replaced by 1), as :func:`segment_distance` and
+    :func:`segment_distance_only` use them."""
+    p0x, p0y, p1x, p1y = p0[..., 0], p0[..., 1], p1[..., 0], p1[..., 1]
+    q0x, q0y, q1x, q1y = q0[..., 0], q0[..., 1], q1[..., 0], q1[..., 1]
+    d1x, d1y = p1x - p0x, p1y - p0y
+    d2x, d2y = q1x - q0x, q1y - q0y
+    a = d1x * d1x + d1y * d1y
+    e = d2x * d2x + d2y * d2y
+    a_nz, e_nz = a > 0.0, e > 0.0
+    return (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, np.where(a_nz, a, 1.0), np.where(e_nz, e, 1.0))
+
+
+def _crossing(p0x: np.ndarray, p0y: np.ndarray, p1x: np.ndarray, p1y: np.ndarray, q0x: np.ndarray, q0y: np.ndarray, q1x: np.ndarray,
+              q1y: np.ndarray, d1x: np.ndarray, d1y: np.ndarray, d2x: np.ndarray, d2y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Proper crossing (each segment's end points strictly on both sides of the other), and
+    ``r = q0 - p0``."""
+    rx, ry = q0x - p0x, q0y - p0y
+    side_q0 = d1x * ry - d1y * rx
+    side_q1 = d1x * (q1y - p0y) - d1y * (q1x - p0x)
+    side_p0 = d2x * (-ry) - d2y * (-rx)
+    side_p1 = d2x * (p1y - q0y) - d2y * (p1x - q0x)
+    return (side_q0 * side_q1 < 0.0) & (side_p0 * side_p1 < 0.0), rx, ry
+
+
 def segment_distance(
     p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -130,14 +156,7 @@ def segment_distance(
     Returns:
         ``(distance, s, t)``: closest points are ``p0 + s (p1 - p0)`` and ``q0 + t (q1 - q0)``.
     """
-    p0x, p0y, p1x, p1y = p0[..., 0], p0[..., 1], p1[..., 0], p1[..., 1]
-    q0x, q0y, q1x, q1y = q0[..., 0], q0[..., 1], q1[..., 0], q1[..., 1]
-    d1x, d1y = p1x - p0x, p1y - p0y
-    d2x, d2y = q1x - q0x, q1y - q0y
-    a = d1x * d1x + d1y * d1y
-    e = d2x * d2x + d2y * d2y
-    a_nz, e_nz = a > 0.0, e > 0.0
-    a_safe, e_safe = np.where(a_nz, a, 1.0), np.where(e_nz, e, 1.0)
+    (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, a_safe, e_safe) = _segment_parts(p0, p1, q0, q1)
     dist, t = point_to_segment(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)
     s = np.zeros_like(dist)
     d_c, t_c = point_to_segment(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)
@@ -149,15 +168,8 @@ def segment_distance(
     d_c, s_c = point_to_segment(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)
     better = d_c < dist
     dist, s, t = np.where(better, d_c, dist), np.where(better, s_c, s), np.where(better, 1.0, t)
-    # Proper crossing: each segment's end points lie strictly on both sides of the other.
-    rx, ry = q0x - p0x, q0y - p0y
-    denom = d1x * d2y - d1y * d2x
-    side_q0 = d1x * ry - d1y * rx
-    side_q1 = d1x * (q1y - p0y) - d1y * (q1x - p0x)
-    side_p0 = d2x * (-ry) - d2y * (-rx)
-    side_p1 = d2x * (p1y - q0y) - d2y * (p1x - q0x)
-    crossing = (side_q0 * side_q1 < 0.0) & (side_p0 * side_p1 < 0.0)
-    safe = np.where(crossing, denom, 1.0)
+    crossing, rx, ry = _crossing(p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y, d1x, d1y, d2x, d2y)
+    safe = np.where(crossing, d1x * d2y - d1y * d2x, 1.0)
     s = np.where(crossing, (rx * d2y - ry * d2x) / safe, s)
     t = np.where(crossing, (rx * d1y - ry * d1x) / safe, t)
     dist = np.where(crossing, 0.0, dist)
@@ -168,26 +180,14 @@ def segment_distance_only(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np
     """The distance of :func:`segment_distance` alone, bit for bit (squared distances compared,
     one square root: ``sqrt`` is monotone and correctly rounded), without the closest points'
     parameters, for the searches that need only the distance."""
-    p0x, p0y, p1x, p1y = p0[..., 0], p0[..., 1], p1[..., 0], p1[..., 1]
-    q0x, q0y, q1x, q1y = q0[..., 0], q0[..., 1], q1[..., 0], q1[..., 1]
-    d1x, d1y = p1x - p0x, p1y - p0y
-    d2x, d2y = q1x - q0x, q1y - q0y
-    a = d1x * d1x + d1y * d1y
-    e = d2x * d2x + d2y * d2y
-    a_nz, e_nz = a > 0.0, e > 0.0
-    a_safe, e_safe = np.where(a_nz, a, 1.0), np.where(e_nz, e, 1.0)
+    (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, a_safe, e_safe) = _segment_parts(p0, p1, q0, q1)
     sq = np.minimum(
         np.minimum(_point_segment_sq_safe(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)[0],
                    _point_segment_sq_safe(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)[0]),
         np.minimum(_point_segment_sq_safe(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)[0],
                    _point_segment_sq_safe(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)[0]),
     )
-    rx, ry = q0x - p0x, q0y - p0y
-    side_q0 = d1x * ry - d1y * rx
-    side_q1 = d1x * (q1y - p0y) - d1y * (q1x - p0x)
-    side_p0 = d2x * (-ry) - d2y * (-rx)
-    side_p1 = d2x * (p1y - q0y) - d2y * (p1x - q0x)
-    crossing = (side_q0 * side_q1 < 0.0) & (side_p0 * side_p1 < 0.0)
+    crossing = _crossing(p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y, d1x, d1y, d2x, d2y)[0]
     return np.where(crossing, 0.0, np.sqrt(sq))
 
 

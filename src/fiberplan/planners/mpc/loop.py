@@ -122,6 +122,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             deadlocks.best_ttg[list(routes)] = np.inf  # measured along their routes
 
     govern_motors = settings.motor_limits and governs(inst.motors)
+    reversed_leg = scenario.kind in REVERSED_LEGS  # a leg planned backwards: the motor rules read backwards
     step = 0
     stopped_stalled = False
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
@@ -169,7 +170,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             if govern_motors:
                 proposed = q_next
                 q_next = govern(q, q_next, v_prev * inst.speeds_rad_s, goal, h, inst.motors, inst.speeds_rad_s, inst.limits_rad,
-                                reverse=scenario.kind in REVERSED_LEGS)
+                                reverse=reversed_leg)
                 free = stalled | (deadlocks.level != Level.NORMAL)
                 q_next[free] = proposed[free]
                 governed = np.any(q_next != proposed, axis=1)
