@@ -20,7 +20,7 @@ DT = 0.05
 def _one(q: float, step: float, v_prev: float, goal: float, reverse: bool = False) -> float:
     """Govern alpha alone (beta holds); the governed step's speed (rad/s)."""
     q0 = np.array([[q, 0.0]])
-    out = govern(q0, q0 + [[step, 0.0]], np.array([[v_prev, 0.0]]), np.array([[goal, 0.0]]), DT, MOONS, TOP, LIMITS, reverse)
+    out = govern(q0, q0 + [[step, 0.0]], np.array([[v_prev, 0.0]]), np.array([[goal, 0.0]]), DT, MOONS, TOP, LIMITS, reverse)  # noqa: RUF005 (numpy addition)
     return float((out[0, 0] - q) / DT)
 
 

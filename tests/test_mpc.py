@@ -359,7 +359,7 @@ def test_safety_layer_lets_a_pair_in_near_contact_part():
     # away parts them (0.11 mm), but the one-piece-in-eight bound cannot prove it (it assumes
     # the closest points approach at full speed); bisecting the pieces can. Both positioners
     # used to be held for hundreds of steps.
-    sc = make_scenario("desi", 500, "random", 7)
+    sc = make_scenario("desi", 500, "random", 7, min_start_clearance_mm=0.0)  # the starts of before the minimum
     settings = make_settings("mpc", sc)
     pair = np.array([[257, 297]])
     q = sc.start.copy()
@@ -381,7 +381,7 @@ def test_safety_layer_lets_a_pair_in_near_contact_part():
 def test_safety_layer_bisection_never_passes_a_step_that_dips_below_its_floor():
     # Random steps of the near-contact pair above: whatever the layer passes keeps at least
     # half the floor at 400 points along the step (and the floor at its end).
-    sc = make_scenario("desi", 500, "random", 7)
+    sc = make_scenario("desi", 500, "random", 7, min_start_clearance_mm=0.0)  # the starts of before the minimum
     settings = make_settings("mpc", sc)
     layer = SafetyLayer(sc, settings.safety_margin_mm)
     pair = np.array([[257, 297]])

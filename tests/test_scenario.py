@@ -9,7 +9,7 @@ import pytest
 
 from fiberplan.errors import InstrumentError, ScenarioError
 from fiberplan.generate import SCENARIO_KINDS, make_scenario
-from fiberplan.geometry import min_pair_clearance
+from fiberplan.geometry import default_safety_margin_mm, min_pair_clearance
 from fiberplan.scenario import load_scenario, scenario_from_dict
 
 
@@ -31,6 +31,33 @@ def test_same_seed_same_scenario_other_seed_other():
     a, b, c = (make_scenario("moons-capsules", 19, "random", s) for s in (4, 4, 5))
     assert np.array_equal(a.start_deg, b.start_deg) and np.array_equal(a.target_values, b.target_values)
     assert not np.array_equal(a.target_values, c.target_values)
+
+
+@pytest.mark.parametrize("kind", ["random", "fold", "clustered"])
+def test_drawn_starts_keep_the_safety_margin_and_only_close_starts_change(kind):
+    # DESI 500 seed 7 drew positioners 257 and 297 0.003 mm apart before the minimum existed;
+    # seed 1 had no pair closer than the margin and is unchanged, start and target.
+    margin = default_safety_margin_mm(make_scenario("desi", 7, kind, 0).instrument)
+    for seed, changes in ((7, True), (1, False)):
+        old = make_scenario("desi", 500, kind, seed, min_start_clearance_mm=0.0)
+        new = make_scenario("desi", 500, kind, seed)
+        closest = min_pair_clearance(new.instrument, new.base_xy, new.orient, new.start, new.pairs).min()
+        assert closest >= margin
+        assert np.array_equal(old.target_values, new.target_values)  # the target is drawn from the untouched stream
+        moved = np.flatnonzero(np.any(old.start_deg != new.start_deg, axis=1))
+        if kind == "random":
+            assert (len(moved) > 0) == changes and len(moved) <= 3
+
+
+def test_a_minimum_start_clearance_that_cannot_hold_is_refused():
+    with pytest.raises(ScenarioError, match="datum start"):
+        make_scenario("desi", 19, "unfold", 0, min_start_clearance_mm=50.0)
+    for bad in (-0.1, float("nan"), "0.1", True):
+        with pytest.raises(ScenarioError, match="min_start_clearance_mm"):
+            make_scenario("desi", 19, "random", 0, min_start_clearance_mm=bad)
+    with pytest.raises(ScenarioError, match="lower min_start_clearance_mm"):
+        make_scenario("desi", 7, "random", 0, min_start_clearance_mm=15.0)  # farther than neighbouring bases allow
+    assert make_scenario("desi", 19, "unfold", 0, min_start_clearance_mm=0.01).n_positioners == 19
 
 
 def test_generator_does_not_touch_global_random_state():

@@ -19,6 +19,7 @@ import pytest
 
 import fiberplan as fp
 from fiberplan.errors import FiberplanError, InstrumentError, OutputError, PlannerError, ScenarioError, SettingsError
+from fiberplan.geometry import min_pair_clearance
 from fiberplan.planners.mpc import qp as mpc_qp
 from fiberplan.trajectory import PlanResult, Trajectory
 
@@ -375,6 +376,19 @@ def test_instrument_with_scenario_is_an_explicit_override(tmp_path):
     proc = cli("plan", "--scenario", path, "--instrument", "moons-capsules", "--planner", "straight", "--json")
     assert proc.returncode == 2 and "on instrument 'moons-capsules'" in proc.stderr
     assert_refused(cli("plan", "--scenario", path, "-n", 19), "--positioners cannot be used with --scenario")
+    assert_refused(cli("plan", "--scenario", path, "--min-start-clearance-mm", 0), "--min-start-clearance-mm cannot be used with --scenario")
+    assert_refused(cli("plan", "--scenario-kind", "hard", "-n", 7, "--min-start-clearance-mm", 0.1),
+                   "--min-start-clearance-mm does not apply to --scenario-kind hard")
+    assert_refused(cli("scenario", "--kind", "unfold", "-n", 7, "--min-start-clearance-mm", 50, "--out", tmp_path / "u.json"),
+                   "datum start")
+    assert not (tmp_path / "u.json").exists()
+    # Given, it is used: seed 7's close start (0.003 mm) is drawn again only under the minimum.
+    for given, closest in ((0, 0.01), (0.2, 0.2)):
+        out = tmp_path / f"c{given}.json"
+        assert cli("scenario", "-n", 500, "--seed", 7, "--min-start-clearance-mm", given, "--out", out).returncode == 0
+        sc = fp.load_scenario(out)
+        clearance = min_pair_clearance(sc.instrument, sc.base_xy, sc.orient, sc.start, sc.pairs).min()
+        assert (clearance < closest) if given == 0 else (clearance >= closest)
 
 
 def test_a_planner_that_gives_up_says_so():

@@ -157,6 +157,7 @@ def cli() -> None:
 
 def _build_scenario(
     ctx: click.Context, scenario_file: Path | None, instrument: str, positioners: int, radius_mm: float | None, kind: str, seed: int,
+    min_start_clearance_mm: float | None = None,
 ) -> tuple[Any, str]:
     """The scenario to plan and a line saying where its instrument came from.
 
@@ -166,7 +167,7 @@ def _build_scenario(
     if scenario_file is not None:
         from fiberplan.scenario import load_scenario
 
-        ignored = _explicit(ctx, "positioners", "radius_mm", "scenario_kind", "seed")
+        ignored = _explicit(ctx, "positioners", "radius_mm", "scenario_kind", "seed", "min_start_clearance_mm")
         if ignored:
             raise click.UsageError(f"{', '.join(ignored)} cannot be used with --scenario (the file gives the positioners and targets)")
         sc = load_scenario(scenario_file)
@@ -181,8 +182,11 @@ def _build_scenario(
     if kind == HARD_KIND:
         if radius_mm is not None:
             raise click.UsageError("--radius-mm does not apply to --scenario-kind hard (a hexagonal group of -n positioners)")
+        if min_start_clearance_mm is not None:
+            raise click.UsageError("--min-start-clearance-mm does not apply to --scenario-kind hard (its starts are drawn close on purpose)")
         return hard_scenario(instrument, positioners, seed), used
-    return make_scenario(inst, positioners, kind, seed, radius_mm=radius_mm, instrument_preset=preset), used
+    return make_scenario(inst, positioners, kind, seed, radius_mm=radius_mm, instrument_preset=preset,
+                         min_start_clearance_mm=min_start_clearance_mm), used
 
 
 @cli.command()
@@ -192,6 +196,8 @@ def _build_scenario(
               help="Lay out a full focal plane of this radius instead of a patch.")
 @click.option("--scenario-kind", default="random", show_default=True, help="random, unfold, fold, clustered or hard.")
 @click.option("--seed", default=0, show_default=True, type=SEED, help="Seed of the scenario generator.")
+@click.option("--min-start-clearance-mm", "min_start_clearance_mm", type=click.FloatRange(min=0), default=None,
+              help="Smallest clearance between neighbours in a drawn start (default: the instrument's safety margin; 0: none).")
 @click.option("--scenario", "scenario_file", type=PATH, default=None, help="Plan this scenario file instead.")
 @click.option("--planner", default=DEFAULT_PLANNER, show_default=True, help="Planner name (see `fiberplan planners`).")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="Planner setting override (repeatable).")
@@ -204,8 +210,8 @@ def _build_scenario(
 @click.pass_context
 def plan(
     ctx: click.Context, instrument: str, positioners: int, radius_mm: float | None, scenario_kind: str, seed: int,
-    scenario_file: Path | None, planner: str, settings: tuple[str, ...], out: Path | None, picture: Path | None, as_json: bool,
-    no_verify: bool, strict: bool, quiet: bool,
+    min_start_clearance_mm: float | None, scenario_file: Path | None, planner: str, settings: tuple[str, ...], out: Path | None,
+    picture: Path | None, as_json: bool, no_verify: bool, strict: bool, quiet: bool,
 ) -> None:
     """Plan a generated or given scenario, verify it, and print a summary."""
     # Everything that can be refused is refused before any planning.
@@ -231,7 +237,8 @@ def plan(
     from fiberplan.planners import settings_class
 
     settings_class(planner)  # an unknown planner is refused before the scenario is built
-    scenario, instrument_used = _build_scenario(ctx, scenario_file, instrument, positioners, radius_mm, scenario_kind, seed)
+    scenario, instrument_used = _build_scenario(ctx, scenario_file, instrument, positioners, radius_mm, scenario_kind, seed,
+                                                min_start_clearance_mm)
     planner_settings = make_settings(planner, scenario, overrides)
     # The planners report the share of their step budget used (an upper bound on the work left)
     # and their phase; the bar shows both and the time spent, not a remaining-time guess.
@@ -388,7 +395,10 @@ def verify(file: Path | None, as_json: bool, max_events: int, instrument: str | 
         sys.exit(1)
 
 
-def _scenario_on_layout(ctx: click.Context, instrument: str, kind: str, seed: int, layout_file: Path, targets_file: Path | None, out: Path) -> None:
+def _scenario_on_layout(
+    ctx: click.Context, instrument: str, kind: str, seed: int, layout_file: Path, targets_file: Path | None, out: Path,
+    min_start_clearance_mm: float | None = None,
+) -> None:
     """``fiberplan scenario --layout``: targets from a table (everyone starts at the datum), or drawn (--kind, --seed)."""
     from fiberplan.generate import make_scenario
     from fiberplan.layout_io import scenario_dict_from_tables
@@ -399,12 +409,12 @@ def _scenario_on_layout(ctx: click.Context, instrument: str, kind: str, seed: in
         raise click.UsageError(f"{', '.join(ignored)} cannot be used with --layout (the layout gives the positioners)")
     inst, preset, used = _instrument_arg(instrument)
     if targets_file is not None:
-        drawn = _explicit(ctx, "kind", "seed")
+        drawn = _explicit(ctx, "kind", "seed", "min_start_clearance_mm")
         if drawn:
             raise click.UsageError(f"{', '.join(drawn)} cannot be used with --targets (the targets come from the table)")
         sc = scenario_from_dict(scenario_dict_from_tables((inst, preset), layout_file, targets_file), origin=f"layout {str(layout_file)!r}")
     else:
-        sc = make_scenario(inst, None, kind, seed, layout=layout_file, instrument_preset=preset)
+        sc = make_scenario(inst, None, kind, seed, layout=layout_file, instrument_preset=preset, min_start_clearance_mm=min_start_clearance_mm)
     if sc.infeasible:
         _warn([f"{len(sc.infeasible)} target(s) cannot be reached at all (they will hold): "
                + "; ".join(f"positioner {sc.ids[k]}: {why}" for k, why in list(sc.infeasible.items())[:10])])
@@ -560,6 +570,8 @@ def animate(file: Path, out: Path, fps: int, frames: int) -> None:
 @click.option("--radius-mm", type=click.FloatRange(min=0, min_open=True), default=None)
 @click.option("--kind", default="random", show_default=True, help="random, unfold, fold or clustered.")
 @click.option("--seed", default=0, show_default=True, type=SEED)
+@click.option("--min-start-clearance-mm", "min_start_clearance_mm", type=click.FloatRange(min=0), default=None,
+              help="Smallest clearance between neighbours in a drawn start (default: the instrument's safety margin; 0: none).")
 @click.option("--paf", "paf_file", type=PATH, default=None, help="Build the scenario from this ESO PAF fibre positioner configuration (MOONS).")
 @click.option("--layout", "layout_file", type=PATH, default=None,
               help="Your focal plane: a CSV/ECSV table 'id, x_mm, y_mm, orient_deg[, locked]' (with --targets, or --kind and --seed).")
@@ -569,8 +581,8 @@ def animate(file: Path, out: Path, fps: int, frames: int) -> None:
 @click.option("--out", type=PATH, required=True, help="Scenario JSON file to write.")
 @click.pass_context
 def scenario(
-    ctx: click.Context, instrument: str, positioners: int, radius_mm: float | None, kind: str, seed: int, paf_file: Path | None,
-    layout_file: Path | None, targets_file: Path | None, out: Path,
+    ctx: click.Context, instrument: str, positioners: int, radius_mm: float | None, kind: str, seed: int,
+    min_start_clearance_mm: float | None, paf_file: Path | None, layout_file: Path | None, targets_file: Path | None, out: Path,
 ) -> None:
     """Generate a seeded scenario (on a hexagonal patch, or on your layout table), or read a layout
     and target table, or an instrument's PAF file and target list, and write it as JSON."""
@@ -578,7 +590,7 @@ def scenario(
     if paf_file is not None and layout_file is not None:
         raise click.UsageError("give --paf or --layout, not both (each gives the positioners)")
     if layout_file is not None:
-        _scenario_on_layout(ctx, instrument, kind, seed, layout_file, targets_file, out)
+        _scenario_on_layout(ctx, instrument, kind, seed, layout_file, targets_file, out, min_start_clearance_mm)
         return
     if paf_file is None:
         if targets_file is not None:
@@ -586,11 +598,12 @@ def scenario(
         from fiberplan.generate import make_scenario
 
         inst, preset, used = _instrument_arg(instrument)
-        sc = make_scenario(inst, positioners, kind, seed, radius_mm=radius_mm, instrument_preset=preset)
+        sc = make_scenario(inst, positioners, kind, seed, radius_mm=radius_mm, instrument_preset=preset,
+                           min_start_clearance_mm=min_start_clearance_mm)
         sc.save(out)
         click.echo(f"wrote {out} ({sc.n_positioners} positioners, {sc.kind}, seed {sc.seed}, instrument {used})")
         return
-    ignored = _explicit(ctx, "instrument", "positioners", "radius_mm", "kind", "seed")
+    ignored = _explicit(ctx, "instrument", "positioners", "radius_mm", "kind", "seed", "min_start_clearance_mm")
     if ignored:
         raise click.UsageError(f"{', '.join(ignored)} cannot be used with --paf (the PAF file gives the instrument and positioners)")
     from fiberplan.paf import scenario_dict_from_paf

@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fiberplan.errors import ScenarioError
-from fiberplan.geometry import min_pair_clearance
+from fiberplan.geometry import default_safety_margin_mm, min_pair_clearance
 from fiberplan.instrument import Instrument
 from fiberplan.instrument_io import instrument_source, load_instrument
 from fiberplan.kinematics import inverse_kinematics
@@ -70,15 +70,46 @@ def random_configuration(
     rng: np.random.Generator,
     sampler: Sampler | None = None,
     max_rounds: int = 1000,
+    min_clearance_mm: float = 0.0,
 ) -> np.ndarray:
     """A collision-free configuration with fibers drawn by ``sampler`` (uniform by default).
 
     Every positioner is drawn once; then, round after round, one positioner of every
-    colliding pair (the later index) is drawn again until no pair collides.
+    colliding pair (the later index) is drawn again until no pair collides. With
+    ``min_clearance_mm > 0``, pairs that are then closer than that are drawn again the same
+    way, from a generator spawned from ``rng`` (so that ``rng``'s own stream, and everything
+    drawn from it afterwards, is the same as without the minimum: only configurations that
+    had a pair that close change, and only in the positioners drawn again).
 
     Raises:
-        ScenarioError: no collision-free configuration was found in ``max_rounds`` rounds.
+        ScenarioError: no configuration was found in ``max_rounds`` rounds.
     """
+    joints = _separated(instrument, base_xy, orient, pairs, rng, sampler, max_rounds, 0.0, None)
+    if min_clearance_mm > 0.0 and len(pairs):
+        joints = _separated(instrument, base_xy, orient, pairs, rng, sampler, max_rounds, float(min_clearance_mm), joints)
+    return joints
+
+
+def _separated(
+    instrument: Instrument,
+    base_xy: np.ndarray,
+    orient: np.ndarray,
+    pairs: np.ndarray,
+    rng: np.random.Generator,
+    sampler: Sampler | None,
+    max_rounds: int,
+    min_clearance_mm: float,
+    joints: np.ndarray | None,
+) -> np.ndarray:
+    """Draw (``joints`` None) or take ``joints``, then redraw until every pair is at least
+    ``min_clearance_mm`` apart (0: does not collide); a given ``joints`` that needs a redraw is
+    redrawn from a generator spawned from ``rng``."""
+    if joints is not None:
+        if len(pairs) == 0 or min_pair_clearance(instrument, base_xy, orient, joints, pairs).min() >= min_clearance_mm:
+            return joints
+        joints = joints.copy()
+        rng = rng.spawn(1)[0]
+
     def draw(rows: np.ndarray) -> np.ndarray:
         for _ in range(100):
             pts = (
@@ -99,18 +130,24 @@ def random_configuration(
         raise ScenarioError(f"could not draw a reachable fiber position for positioner row {rows[0]}")
 
     n = len(base_xy)
-    joints = draw(np.arange(n))
+    if joints is None:
+        joints = draw(np.arange(n))
     for _ in range(max_rounds):
         if len(pairs) == 0:
             return joints
         clearance = min_pair_clearance(instrument, base_xy, orient, joints, pairs)
-        colliding = pairs[clearance < 0.0]
+        colliding = pairs[clearance < min_clearance_mm]
         if len(colliding) == 0:
             return joints
         # Redraw the later index of each colliding pair, and sometimes the earlier one so
         # that a positioner boxed in by fixed neighbours can still get out.
         redraw = np.unique(np.where(rng.random(len(colliding)) < 0.8, colliding[:, 1], colliding[:, 0]))
         joints[redraw] = draw(redraw)
+    if min_clearance_mm > 0.0:
+        raise ScenarioError(
+            f"no configuration with every pair at least {min_clearance_mm} mm apart found after {max_rounds} rounds for {n} "
+            "positioners; lower min_start_clearance_mm"
+        )
     raise ScenarioError(
         f"no collision-free configuration found after {max_rounds} rounds for {n} positioners; "
         "the targets may be too dense for this instrument"
@@ -173,6 +210,7 @@ def make_scenario(
     cluster_fraction: float = 0.8,
     instrument_preset: str | None = None,
     layout: Any = None,
+    min_start_clearance_mm: float | None = None,
 ) -> Scenario:
     """Generate a seeded scenario on a hexagonal patch, a full focal plane by radius, or a given layout.
 
@@ -192,6 +230,13 @@ def make_scenario(
             ``id, x_mm, y_mm, orient_deg[, locked]``): its positioners, ids and orientations
             replace the patch (``n_positioners`` and ``radius_mm`` are then ignored); locked
             positioners keep their drawn start and get no target.
+        min_start_clearance_mm: every pair of a drawn start (``random``, ``fold``,
+            ``clustered``) is at least this far apart (default: the instrument's
+            :func:`~fiberplan.geometry.default_safety_margin_mm`, so that no positioner starts
+            closer to a neighbour than the planners' safety layers let a step come). Only the
+            starts that had a pair closer than this are drawn again (see
+            :func:`random_configuration`); 0 gives the starts of fiberplan 0.x before the
+            minimum existed. For ``unfold`` (the datum start) a given value is checked.
 
     Raises:
         ScenarioError: unknown kind, bad size, or no collision-free configuration found.
@@ -232,10 +277,17 @@ def make_scenario(
     pairs = neighbour_pairs(inst, base)
     datum = np.broadcast_to(np.array(inst.datum_rad), (n, 2)).copy()
 
+    given_clearance = min_start_clearance_mm is not None
+    min_start = default_safety_margin_mm(inst) if min_start_clearance_mm is None else min_start_clearance_mm
+    if isinstance(min_start, bool) or not isinstance(min_start, (int, float, np.floating)) or not np.isfinite(min_start) or min_start < 0:
+        raise ScenarioError(f"min_start_clearance_mm must be a finite number of mm >= 0, found {min_start_clearance_mm!r}")
     if kind == "unfold":
         start = datum
+        if given_clearance and len(pairs) and (closest := float(min_pair_clearance(inst, base, orient, datum, pairs).min())) < min_start:
+            raise ScenarioError(f"min_start_clearance_mm {min_start} mm: the datum start of an unfold has pairs {closest:.4f} mm "
+                                "apart; lower it or leave it unset")
     else:
-        start = random_configuration(inst, base, orient, pairs, rng)
+        start = random_configuration(inst, base, orient, pairs, rng, min_clearance_mm=float(min_start))
     if kind == "fold":
         target = datum
     elif kind == "clustered":

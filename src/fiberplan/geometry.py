@@ -40,6 +40,18 @@ def motion_bound(rho: np.ndarray, dq: np.ndarray) -> np.ndarray:
     return np.abs(dq) @ rho
 
 
+def step_motion_mm(instrument: Instrument, dt_s: float) -> float:
+    """Largest distance a capsule point moves in one step of ``dt_s`` at full speed (mm)."""
+    return float(motion_bound(point_extents(instrument), instrument.speeds_rad_s) * dt_s)
+
+
+def default_safety_margin_mm(instrument: Instrument) -> float:
+    """The smallest clearance the planners' safety layers keep by default: a tenth of the step
+    motion of one control period (:func:`step_motion_mm`), rounded to 0.1 um. The generated
+    starts keep at least this much (:func:`fiberplan.generate.make_scenario`)."""
+    return round(0.1 * step_motion_mm(instrument, instrument.control_dt_s), 4)
+
+
 @functools.lru_cache(maxsize=32)
 def capsule_tables(instrument: Instrument) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-capsule arrays ``(on_alpha, start_mm, end_mm)`` (along the arm) and the checked

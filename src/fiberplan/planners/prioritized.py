@@ -29,7 +29,7 @@ from functools import partial
 
 import numpy as np
 
-from fiberplan.geometry import motion_bound, point_extents
+from fiberplan.geometry import default_safety_margin_mm, step_motion_mm
 from fiberplan.instrument import Instrument
 from fiberplan.kinematics import move_times
 from fiberplan.outcomes import outcome_labels
@@ -73,8 +73,8 @@ class PrioritizedSettings:
     def for_instrument(cls, instrument: Instrument) -> PrioritizedSettings:
         """Defaults scaled to the instrument as the ``mpc``'s: its control step, margins of its step motion."""
         dt = instrument.control_dt_s
-        step_mm = float(motion_bound(point_extents(instrument), instrument.speeds_rad_s) * dt)
-        defaults = cls(dt_s=dt, margin_mm=round(1.2 * step_mm, 4), safety_margin_mm=round(0.1 * step_mm, 4))
+        step_mm = step_motion_mm(instrument, dt)
+        defaults = cls(dt_s=dt, margin_mm=round(1.2 * step_mm, 4), safety_margin_mm=default_safety_margin_mm(instrument))
         return instrument_defaults(instrument, "prioritized", defaults)
 
     def __post_init__(self) -> None:

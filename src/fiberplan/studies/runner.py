@@ -81,10 +81,18 @@ class RunSpec:
                 "seed": self.seed,
                 "settings": dict(self.settings),
                 **({"scenario": dict(self.scenario_options)} if self.scenario_options else {}),
+                # Drawn starts keep the instrument's safety margin since the minimum start clearance
+                # came in: a part written before then is not this run.
+                **({"start_clearance": "instrument margin"} if self._default_start_clearance else {}),
             },
             sort_keys=True,
         )
         return hashlib.sha1(payload.encode()).hexdigest()[:16]
+
+    @property
+    def _default_start_clearance(self) -> bool:
+        """The scenario's start is drawn with the default minimum clearance (not given in ``[scenario]``)."""
+        return self.scenario_kind in ("random", "fold", "clustered") and "min_start_clearance_mm" not in dict(self.scenario_options)
 
     def scenario(self) -> Scenario:
         """The run's scenario (seeded: the same spec gives the same scenario)."""

@@ -73,7 +73,7 @@ STATUS_ERROR = "error"
 """The run raised: a deterministic result of its inputs, kept on resume."""
 STATUS_LOST = "lost"
 """The machinery failed (the worker process died, the Dask worker was lost): run again on resume."""
-SCENARIO_OPTIONS = ("clusters", "cluster_fraction", "random_orientation", "radius_mm")
+SCENARIO_OPTIONS = ("clusters", "cluster_fraction", "random_orientation", "radius_mm", "min_start_clearance_mm")
 """Keyword arguments of :func:`fiberplan.generate.make_scenario` a study may vary (``[scenario]``)."""
 
 
@@ -212,10 +212,11 @@ def _check_scenario_option(name: str, value: Any, origin: str) -> None:
         "cluster_fraction": number and 0.0 <= value <= 1.0,
         "random_orientation": isinstance(value, bool),
         "radius_mm": number and math.isfinite(value) and value > 0,
+        "min_start_clearance_mm": number and math.isfinite(value) and value >= 0,
     }[name]
     valid = {
         "clusters": "an integer >= 1", "cluster_fraction": "a number in [0, 1]", "random_orientation": "true or false",
-        "radius_mm": "a number of mm > 0",
+        "radius_mm": "a number of mm > 0", "min_start_clearance_mm": "a number of mm >= 0",
     }[name]
     if not ok:
         raise StudyError(f"{origin}: [scenario] {name} must be {valid}, found {value!r}")

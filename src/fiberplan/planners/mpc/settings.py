@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from fiberplan.errors import PlannerError
-from fiberplan.geometry import motion_bound, point_extents
+from fiberplan.geometry import default_safety_margin_mm, step_motion_mm
 from fiberplan.instrument import Instrument
 from fiberplan.planners import instrument_defaults
 from fiberplan.planners.coordination.settings import RouteSettings
@@ -127,7 +127,7 @@ class MpcSettings(RouteSettings):
             dt_s=dt,
             margin_mm=round(1.2 * step_mm, 4),
             priority_margin_mm=round(0.4 * step_mm, 4),
-            safety_margin_mm=round(0.1 * step_mm, 4),
+            safety_margin_mm=default_safety_margin_mm(instrument),
             conflict_radius_mm=round(4.0 * step_mm, 4),
             max_duration_extra_s=instrument.full_turn_s,
         )
@@ -145,7 +145,3 @@ class MpcSettings(RouteSettings):
                     f"mpc: qp_solver {self.qp_solver!r} is not installed; qpsolvers has {', '.join(qpsolvers.available_solvers)}"
                 )
 
-
-def step_motion_mm(instrument: Instrument, dt_s: float) -> float:
-    """Largest distance a capsule point moves in one step at full speed (mm)."""
-    return float(motion_bound(point_extents(instrument), instrument.speeds_rad_s) * dt_s)
