@@ -223,3 +223,34 @@ def test_when_every_route_leaves_positioners_short_the_fallback_planner_plans_th
     calls.clear()
     alone = fp.plan(sc, "mpc", {"route_fallback_planner": None})
     assert alone.stats["chosen"] == "direct" and fp.summarize(alone)["reached"] == 0
+
+
+def test_a_large_leg_with_few_away_is_planned_on_the_part_that_moves(monkeypatch):
+    from fiberplan.planners.coordination import legs
+
+    sc = fp.make_scenario("desi", 61, "random", 3)
+    away = np.array([30, 31])  # two neighbours in the middle of the patch still to arrive, the others on their targets
+    leg = leg_scenario(sc, np.where(np.isin(np.arange(61), away)[:, None], sc.start, sc.target), sc.target, "leg")
+    seen = []
+
+    def plan_leg(part, **kwargs):
+        seen.append((part, kwargs))
+        return fp.plan(part, "mpc", {"route": "direct"})
+
+    whole, _ = legs._plan_part(leg, plan_leg, time_limit_s=5.0)  # 61 positioners: planned whole
+    assert seen[-1][0] is leg and seen[-1][1] == {"time_limit_s": 5.0}
+    monkeypatch.setattr(legs, "LOCAL_ABOVE", 10)
+    joints, duration = legs._plan_part(leg, plan_leg, time_limit_s=5.0)
+    part, kwargs = seen[-1]
+    assert kwargs == {"time_limit_s": 5.0} and part.n_positioners < 61
+    pairs = leg.pairs
+    neighbours = set(pairs[np.isin(pairs, away).any(axis=1)].ravel().tolist())
+    free = set(part.ids[~part.locked].tolist())
+    assert free == neighbours  # the two and every neighbour of theirs may move (and yield) ...
+    assert set(part.ids[part.locked].tolist()).isdisjoint(free) and not part.has_target[part.locked].any()  # ... the ring holds
+    outside = ~np.isin(np.arange(61), part.ids)
+    assert np.all(joints[:, outside] == leg.start[outside])  # the rest of the field holds
+    assert joints.shape[1:] == (61, 2) and duration == pytest.approx((len(joints) - 1) * leg.instrument.control_dt_s)
+    traj = fp.Trajectory(np.arange(len(joints)) * leg.instrument.control_dt_s, joints)
+    assert fp.verify(leg, traj).ok and legs.at_targets(leg, joints[-1]).all()
+    assert legs.at_targets(leg, whole[-1]).all()

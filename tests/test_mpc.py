@@ -285,6 +285,33 @@ def test_parallel_executor_gives_identical_trajectories():
     assert np.array_equal(seq.outcome, par.outcome)
 
 
+def test_large_runs_start_idle_workspaces_afresh_and_both_executors_agree(monkeypatch):
+    # A run above WORKSPACES_KEPT_UP_TO positioners: a workspace idle for more than FRESH_AFTER_STEPS
+    # steps is started afresh (and freed); the rule is per positioner, so the executors still agree.
+    from fiberplan.planners.mpc import executors, loop
+
+    scenario = make_scenario("desi", 37, "random", 5)
+    kept = plan(scenario, "mpc", {"executor": "sequential"})
+    alive = []
+    solve = executors._Block.solve
+
+    def counted(self, batch, step=0):
+        out = solve(self, batch, step)
+        alive.append(len(self.workspaces))
+        return out
+
+    monkeypatch.setattr(executors._Block, "solve", counted)
+    monkeypatch.setattr(loop, "WORKSPACES_KEPT_UP_TO", 10)
+    monkeypatch.setattr(loop, "FRESH_AFTER_STEPS", 2)
+    seq = plan(scenario, "mpc", {"executor": "sequential"})
+    par = plan(scenario, "mpc", {"executor": "parallel", "workers": 2})
+    assert seq.stats["qp_workspaces"] > kept.stats["qp_workspaces"]  # some were started afresh
+    assert min(alive[1:]) < max(alive)  # and freed
+    assert np.array_equal(seq.trajectory.joints, par.trajectory.joints)
+    _check_safe(seq)
+    assert seq.stats["qp_failures"] == 0 and np.all(seq.outcome == "reached")
+
+
 def test_same_seed_same_trajectory():
     a = plan(make_scenario("desi", 19, "random", 4), "mpc")
     b = plan(make_scenario("desi", 19, "random", 4), "mpc")

@@ -289,6 +289,7 @@ def coordinate(
     route, dt = settings.route, settings.dt_s
     fallback = getattr(settings, "route_fallback_planner", None)
     candidates: dict[str, list[_Piece]] = {}
+    scores: dict[str, tuple[int, float]] = {}  # (short, makespan) of each candidate, scored once
     tried: list[dict[str, Any]] = []
     runs: list[PlanResult] = []  # every planner run, for the statistics
     CHILD_RUNS.clear()
@@ -308,7 +309,7 @@ def coordinate(
     def consider(name: str, pieces: list[_Piece] | None) -> dict[str, Any]:
         entry: dict[str, Any] = {"strategy": name, "complete": pieces is not None}
         if pieces is not None:
-            short, makespan = _score(scenario, _join(scenario, pieces, dt))
+            short, makespan = scores[name] = _score(scenario, _join(scenario, pieces, dt))
             entry |= {"short": short, "makespan_s": makespan}
             candidates[name] = pieces
         tried.append(entry)
@@ -318,7 +319,7 @@ def coordinate(
     structure = _strategies(scenario, route, recorded, opts, consider)
 
     def short() -> bool:
-        return not candidates or min(_score(scenario, _join(scenario, p, dt))[0] for p in candidates.values()) > 0
+        return not candidates or min(scores[name][0] for name in candidates) > 0
 
     if short() and fallback and not _WHOLE_FALLBACK.get():
         # Positioners left short: the fallback planner over the whole move, with its own route
@@ -328,10 +329,10 @@ def coordinate(
         consider("fallback planner", _whole_by_fallback(scenario, fallback, dt))
     if not candidates or (short() and "direct" not in candidates):  # the direct plan, with what it reached
         consider("direct (fallback)", _direct(scenario, recorded, opts))
-    chosen = min(candidates, key=lambda name: (_score(scenario, _join(scenario, candidates[name], dt)), name != "via_datum"))
+    chosen = min(candidates, key=lambda name: (scores[name], name != "via_datum"))
     if "via_datum" in candidates and chosen != "via_datum":
         # Never worse than the two-leg plan.
-        if _score(scenario, _join(scenario, candidates[chosen], dt)) > _score(scenario, _join(scenario, candidates["via_datum"], dt)):
+        if scores[chosen] > scores["via_datum"]:
             chosen = "via_datum"
     pieces = candidates[chosen]
     trajectory = _join(scenario, pieces, dt)

@@ -50,6 +50,52 @@ full speed) is restarted: below, a restart costs planning time for little (DESI 
 1.0-1.2 times the bound)."""
 
 
+LOCAL_ABOVE = 2000
+"""A leg attempt on more positioners than this, with few of them away from their targets, is
+planned on the part of the field that still moves (:func:`_plan_part`): below, every attempt is
+planned whole (every benchmark set: their trajectories are those of before)."""
+
+LOCAL_SHARE = 0.5
+"""... and only when that part holds at most this share of the positioners."""
+
+
+def _plan_part(leg: Scenario, plan_leg: PlanLeg, **kwargs: object) -> tuple[np.ndarray, float]:
+    """``plan_leg(leg, **kwargs)``'s joints ``(K, N, 2)`` and duration (s). A large leg in which
+    few positioners are away from their targets is planned on those positioners and their
+    neighbours (who may yield to them), the neighbours around those held as locked obstacles; the
+    rest of the field holds where it is, as it would in a whole plan, and is not planned: a leg's
+    later attempts and restarts then cost what the positioners still moving cost, not the field."""
+    n = leg.n_positioners
+    away = ~at_targets(leg, leg.start) & ~leg.locked
+    pairs = leg.pairs
+    if n <= LOCAL_ABOVE or not away.any() or not len(pairs):
+        result = plan_leg(leg, **kwargs)
+        return result.trajectory.joints, result.trajectory.duration_s
+    free = _with_neighbours(away, pairs)
+    ring = _with_neighbours(free, pairs) & ~free
+    rows = np.flatnonzero(free | ring)
+    if len(rows) > LOCAL_SHARE * n:
+        result = plan_leg(leg, **kwargs)
+        return result.trajectory.joints, result.trajectory.duration_s
+    part = leg.subset(rows, name=f"{leg.name}:part")
+    held = ring[rows]
+    part = _replace(part, locked=part.locked | held, target_kind=np.where(held, TARGET_NONE, part.target_kind),
+                    target_values=np.where(held[:, None], 0.0, part.target_values))
+    result = plan_leg(part, **kwargs)
+    moved = result.trajectory.joints
+    joints = np.repeat(leg.start[None], len(moved), axis=0)
+    joints[:, rows] = moved
+    return joints, result.trajectory.duration_s
+
+
+def _with_neighbours(mask: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """``mask`` and every positioner paired with one in it."""
+    out = mask.copy()
+    touching = mask[pairs[:, 0]] | mask[pairs[:, 1]]
+    out[pairs[touching].ravel()] = True
+    return out
+
+
 def leg_scenario(scenario: Scenario, start: np.ndarray, goal: np.ndarray, name: str) -> Scenario:
     """The same positioners from ``start`` to ``goal`` (rad), every one with a joint target
     (locked ones stay locked, without a target)."""
@@ -155,13 +201,13 @@ def _attempts(
     while k < attempts:
         k += 1
         if time_limit_s is None:
-            result = plan_leg(current)
+            planned, duration = _plan_part(current, plan_leg)
         else:
             if time_limit_s - used <= 0:
                 break
-            result = plan_leg(current, time_limit_s=time_limit_s - used)
-        joints = trim(result.trajectory.joints)
-        used += result.trajectory.duration_s
+            planned, duration = _plan_part(current, plan_leg, time_limit_s=time_limit_s - used)
+        joints = trim(planned)
+        used += duration
         pieces.append(joints if not pieces else joints[1:])
         end = joints[-1]
         at = at_targets(leg, end)
@@ -195,8 +241,7 @@ def _attempts(
                     break
                 # The last resort: one attempt of the fallback planner from where this one stalled.
                 fallback_used = True
-                result = plan_leg(current_from(end), use_fallback=True)
-                joints = trim(result.trajectory.joints)
+                joints = trim(_plan_part(current_from(end), plan_leg, use_fallback=True)[0])
                 pieces.append(joints[1:])
                 end = joints[-1]
                 if at_targets(leg, end).all():

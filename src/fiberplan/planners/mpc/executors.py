@@ -6,6 +6,11 @@ a fixed block of positioners (``index % n_blocks``) and their workspaces for the
 the planner process itself owns block 0. Because each workspace sees exactly the same
 sequence of updates in both executors, and OSQP is deterministic, both executors produce
 bit-identical trajectories.
+
+A large run (``fresh_after`` given) starts a positioner's workspace afresh when it has not
+solved for more than ``fresh_after`` steps, and frees such idle workspaces every
+``fresh_after`` steps: memory then follows the positioners in conflict, not the field. The
+rule depends only on each positioner's own steps, so both executors stay bit-identical.
 """
 
 from __future__ import annotations
@@ -65,13 +70,15 @@ class QpBatchResult:
 class _Block:
     """The QP workspaces of one block of positioners (lives in one process)."""
 
-    def __init__(self, layout: QpLayout, options: OsqpOptions, qp_solver: str) -> None:
+    def __init__(self, layout: QpLayout, options: OsqpOptions, qp_solver: str, fresh_after: int | None = None) -> None:
         self.layout = layout
         self.options = options
         self.qp_solver = qp_solver
         self.workspaces: dict[int, PositionerQP] = {}
+        self.fresh_after = fresh_after
+        self.last_step: dict[int, int] = {}  # the step each workspace last solved at (with fresh_after)
 
-    def solve(self, batch: QpBatch) -> QpBatchResult:
+    def solve(self, batch: QpBatch, step: int = 0) -> QpBatchResult:
         m = len(batch.index)
         H = self.layout.horizon_steps
         status = np.zeros(m, dtype=np.int64)
@@ -92,6 +99,10 @@ class _Block:
                 if osqp:
                     key = int(batch.index[r])
                     workspace = self.workspaces.get(key)
+                    if self.fresh_after is not None:
+                        if workspace is not None and step - self.last_step[key] > self.fresh_after:
+                            workspace = None  # idle too long: a fresh workspace, as if it had been freed
+                        self.last_step[key] = step
                     if workspace is None:
                         workspace = PositionerQP(self.layout, self.options)
                         self.workspaces[key] = workspace
@@ -107,6 +118,9 @@ class _Block:
             status[r], iterations[r], solve_s[r] = st, it, dt
             if x is not None and st in USABLE:
                 z[r] = self.layout.split(x)[0]
+        if self.fresh_after is not None and step % self.fresh_after == 0:
+            for key in [k for k, last in self.last_step.items() if step - last > self.fresh_after]:
+                del self.workspaces[key], self.last_step[key]
         return QpBatchResult(status, z, iterations, solve_s, created, first_error)
 
 
@@ -131,24 +145,24 @@ def _merge(parts: list[tuple[np.ndarray, QpBatchResult]], m: int, H: int) -> QpB
 class SequentialExecutor:
     """Solves every QP in the planner's process."""
 
-    def __init__(self, layout: QpLayout, options: OsqpOptions, qp_solver: str) -> None:
-        self._block = _Block(layout, options, qp_solver)
+    def __init__(self, layout: QpLayout, options: OsqpOptions, qp_solver: str, fresh_after: int | None = None) -> None:
+        self._block = _Block(layout, options, qp_solver, fresh_after)
 
-    def solve(self, batch: QpBatch) -> QpBatchResult:
+    def solve(self, batch: QpBatch, step: int = 0) -> QpBatchResult:
         """Solve a batch, positioner by positioner."""
-        return self._block.solve(batch)
+        return self._block.solve(batch, step)
 
     def close(self) -> None:
         """Nothing to release."""
 
 
-def _worker(conn: Connection, layout: QpLayout, options: OsqpOptions, qp_solver: str) -> None:
-    block = _Block(layout, options, qp_solver)
+def _worker(conn: Connection, layout: QpLayout, options: OsqpOptions, qp_solver: str, fresh_after: int | None) -> None:
+    block = _Block(layout, options, qp_solver, fresh_after)
     while True:
-        batch = conn.recv()
-        if batch is None:
+        message = conn.recv()
+        if message is None:
             break
-        conn.send(block.solve(batch))
+        conn.send(block.solve(*message))
     conn.close()
 
 
@@ -161,12 +175,12 @@ class ParallelExecutor:
     through a pipe and sends back their plans.
     """
 
-    def __init__(self, layout: QpLayout, options: OsqpOptions, qp_solver: str, workers: int) -> None:
+    def __init__(self, layout: QpLayout, options: OsqpOptions, qp_solver: str, workers: int, fresh_after: int | None = None) -> None:
         if workers < 1:
             raise PlannerError(f"mpc: workers must be >= 1, found {workers}")
         self.n_blocks = int(workers)
         self._layout = layout
-        self._local = _Block(layout, options, qp_solver)
+        self._local = _Block(layout, options, qp_solver, fresh_after)
         self._conns: list[Connection] = []
         self._procs: list[Any] = []
         try:
@@ -175,13 +189,13 @@ class ParallelExecutor:
             raise PlannerError("mpc: the parallel executor needs the 'fork' start method (Linux, macOS)") from e
         for _ in range(self.n_blocks - 1):
             parent, child = ctx.Pipe()
-            proc = ctx.Process(target=_worker, args=(child, layout, options, qp_solver), daemon=True)
+            proc = ctx.Process(target=_worker, args=(child, layout, options, qp_solver, fresh_after), daemon=True)
             proc.start()
             child.close()
             self._conns.append(parent)
             self._procs.append(proc)
 
-    def solve(self, batch: QpBatch) -> QpBatchResult:
+    def solve(self, batch: QpBatch, step: int = 0) -> QpBatchResult:
         """Send each block its QPs, solve block 0 here, gather the results in batch order."""
         m = len(batch.index)
         owner = batch.index % self.n_blocks
@@ -189,10 +203,10 @@ class ParallelExecutor:
         for b in range(1, self.n_blocks):
             rows = np.flatnonzero(owner == b)
             if len(rows):
-                self._conns[b - 1].send(batch.take(rows))
+                self._conns[b - 1].send((batch.take(rows), step))
                 sent.append((rows, b))
         rows0 = np.flatnonzero(owner == 0)
-        parts = [(rows0, self._local.solve(batch.take(rows0)))]
+        parts = [(rows0, self._local.solve(batch.take(rows0), step))]
         for rows, b in sent:
             parts.append((rows, self._conns[b - 1].recv()))
         return _merge(parts, m, self._layout.horizon_steps)
@@ -214,11 +228,11 @@ class ParallelExecutor:
 
 
 def make_executor(
-    kind: str, layout: QpLayout, options: OsqpOptions, qp_solver: str, workers: int
+    kind: str, layout: QpLayout, options: OsqpOptions, qp_solver: str, workers: int, fresh_after: int | None = None,
 ) -> SequentialExecutor | ParallelExecutor:
-    """Build the executor named by the ``executor`` setting."""
+    """Build the executor named by the ``executor`` setting (``fresh_after``: see the module docstring)."""
     if kind == "sequential":
-        return SequentialExecutor(layout, options, qp_solver)
+        return SequentialExecutor(layout, options, qp_solver, fresh_after)
     if kind == "parallel":
-        return ParallelExecutor(layout, options, qp_solver, workers)
+        return ParallelExecutor(layout, options, qp_solver, workers, fresh_after)
     raise PlannerError(f"mpc: executor must be 'sequential' or 'parallel', found {kind!r}")

@@ -68,6 +68,13 @@ from fiberplan.scenario import Scenario
 from fiberplan.settings import check_step_budget
 from fiberplan.trajectory import PlanResult, Trajectory
 
+WORKSPACES_KEPT_UP_TO = 4000
+"""Runs of up to this many positioners keep every QP workspace for the whole run (every
+benchmark set but the scaling one: their trajectories are those of before). A larger run starts
+a positioner's workspace afresh after :data:`FRESH_AFTER_STEPS` idle steps and frees the idle
+ones (:mod:`.executors`): 50,000 DESI positioners create ~19,000 workspaces of ~50 kB each."""
+
+FRESH_AFTER_STEPS = 50
 
 def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallback | None = None) -> PlanResult:
     """Plan with decentralised MPC; see the module docstring and ``formulations/mpc.md``."""
@@ -125,7 +132,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     reversed_leg = scenario.kind in REVERSED_LEGS  # a leg planned backwards: the motor rules read backwards
     step = 0
     stopped_stalled = False
-    executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers)
+    fresh_after = FRESH_AFTER_STEPS if n > WORKSPACES_KEPT_UP_TO else None
+    executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers, fresh_after)
     try:
         for step in range(max_steps):
             at_goal = np.all(q == goal_final, axis=1)
@@ -153,7 +161,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             ref = straight_path(q, goal, step_rad, H)
             routes.reference(ref, q, unstarted, step_rad, step)
             q_next, new_plan = _solve_qps(scenario, settings, layout, executor, stats, sel, margin_cap, q, own_plan, plan, ref, v_prev,
-                                          rank, deadlocks.wait_first, boosted, step_rad)
+                                          rank, deadlocks.wait_first, boosted, step_rad, step)
             # Snap onto the goal when within a small fraction of a step of it.
             near = np.all(np.abs(goal - q_next) <= 0.05 * step_rad, axis=1) & np.all(np.abs(goal - q) <= step_rad, axis=1)
             q_next[near] = goal[near]
@@ -204,7 +212,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
 def _solve_qps(
     scenario: Scenario, settings: MpcSettings, layout: QpLayout, executor: Any, stats: RunStats, sel: np.ndarray, margin_cap: np.ndarray,
     q: np.ndarray, own_plan: np.ndarray, plan: np.ndarray, ref: np.ndarray, v_prev: np.ndarray, rank: np.ndarray,
-    wait_first: np.ndarray, boosted: np.ndarray, step_rad: np.ndarray,
+    wait_first: np.ndarray, boosted: np.ndarray, step_rad: np.ndarray, step: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The next configuration and the new plans: the reference for positioners in no conflict,
     the first step of its QP's plan for each one in conflict (a failed solve holds)."""
@@ -215,7 +223,7 @@ def _solve_qps(
     if len(sel):
         batch = build_qp_batch(scenario, settings, layout, scenario.pairs[sel], margin_cap[sel], q, own_plan, plan, ref, v_prev, rank,
                                wait_first, boosted, step_rad, lim)
-        result = executor.solve(batch)
+        result = executor.solve(batch, step)
         idx = batch.index
         n_qp = len(idx)
         stats.record_qps(result)
