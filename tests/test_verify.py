@@ -39,6 +39,27 @@ def test_straight_moves_on_random_targets_collide(instrument):
     assert 0.0 <= event.t_first_s <= event.t_worst_s
 
 
+def test_the_report_does_not_depend_on_the_time_chunk(monkeypatch):
+    # The default chunk shrinks on large fields (verify.CHUNK_PAIR_SAMPLES); whatever the chunk, the
+    # same collisions, first and worst times, clearance and probes.
+    import dataclasses
+    import importlib
+
+    verify_module = importlib.import_module("fiberplan.verify")
+    sc = make_scenario("sdss", 61, "random", 1)
+    collided = []
+    for trajectory in (plan(sc, "straight").trajectory, plan(sc, "dnf").trajectory):
+        reports = [verify(sc, trajectory, time_chunk=chunk) for chunk in (1, 3, 64)]
+        monkeypatch.setattr(verify_module, "CHUNK_PAIR_SAMPLES", 2 * len(sc.pairs))  # the default: 2 samples at a time
+        reports.append(verify(sc, trajectory))
+        monkeypatch.undo()
+        first = dataclasses.asdict(reports[0])
+        assert all(dataclasses.asdict(r) == first for r in reports[1:])
+        assert reports[0].probes > 0
+        collided.append(reports[0].n_collisions > 0)
+    assert collided == [True, False]
+
+
 def test_rigid_rotation_is_clear():
     # Every positioner turns alpha by the same angle with the same beta: the arms stay
     # translated copies of each other, so straight moves cannot collide.

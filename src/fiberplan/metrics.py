@@ -31,14 +31,20 @@ def reached_mask(scenario: Scenario, trajectory: Trajectory) -> np.ndarray:
 
 
 def arrival_times(scenario: Scenario, trajectory: Trajectory) -> np.ndarray:
-    """Time each positioner enters its tolerance disc for good (NaN if it never stays)."""
-    fibers = fiber_positions(scenario.instrument, scenario.base_xy, scenario.orient, trajectory.joints)
-    inside = np.linalg.norm(fibers - scenario.target_xy, axis=-1) <= scenario.instrument.tolerance_mm
-    # Last sample outside the disc; arrival is the sample after it.
-    outside_rev = ~inside[::-1]
-    any_outside = outside_rev.any(axis=0)
-    last_out = len(inside) - 1 - np.argmax(outside_rev, axis=0)
-    arrive_idx = np.where(any_outside, last_out + 1, 0)
+    """Time each positioner enters its tolerance disc for good (NaN if it never stays).
+
+    The samples are taken in chunks of about two million positions, so that a large field's
+    fiber positions are never held all at once."""
+    joints = trajectory.joints
+    n_t, n = joints.shape[0], joints.shape[1]
+    chunk = max(1, 2_000_000 // max(1, n))
+    last_out = np.full(n, -1)  # last sample outside the disc; arrival is the sample after it
+    for k0 in range(0, n_t, chunk):
+        fibers = fiber_positions(scenario.instrument, scenario.base_xy, scenario.orient, joints[k0:k0 + chunk])
+        outside_rev = ~(np.linalg.norm(fibers - scenario.target_xy, axis=-1) <= scenario.instrument.tolerance_mm)[::-1]  # NaN: outside
+        any_outside = outside_rev.any(axis=0)
+        last_out = np.where(any_outside, k0 + len(outside_rev) - 1 - np.argmax(outside_rev, axis=0), last_out)
+    arrive_idx = last_out + 1
     times = np.append(trajectory.times, np.nan)
     result = times[arrive_idx]
     return np.where(scenario.has_target, result, np.nan)

@@ -157,8 +157,12 @@ class VerificationReport:
         }
 
 
+CHUNK_PAIR_SAMPLES = 1_000_000
+"""Pair-samples the verifier takes at once by default (memory: a few hundred bytes each)."""
+
+
 def verify(
-    scenario: Scenario, trajectory: Trajectory, *, fraction: float = 0.5, time_chunk: int = 64, instrument: Instrument | None = None,
+    scenario: Scenario, trajectory: Trajectory, *, fraction: float = 0.5, time_chunk: int | None = None, instrument: Instrument | None = None,
 ) -> VerificationReport:
     """Check a trajectory against the scenario's instrument (or the one given).
 
@@ -167,7 +171,9 @@ def verify(
         trajectory: joint angles ``(T, N, 2)`` on a time grid, linear between samples.
         fraction: bisect each inter-sample interval until no point moves more than this
             fraction of the clearance between two checks (0 < fraction < 1).
-        time_chunk: samples processed at once (memory bound for large N).
+        time_chunk: samples processed at once (memory bound for large N); default: 64, fewer
+            on a field of more than 15,625 neighbour pairs, so that a chunk holds about a
+            million pair-samples (:data:`CHUNK_PAIR_SAMPLES`). The report does not depend on it.
         instrument: check against this geometry and these limits instead of the scenario's.
 
     Returns:
@@ -179,19 +185,23 @@ def verify(
     """
     if not 0.0 < fraction < 1.0:
         raise TrajectoryError(f"fraction must lie in (0, 1), found {fraction}")
-    if int(time_chunk) != time_chunk or time_chunk < 1:
+    if time_chunk is not None and (int(time_chunk) != time_chunk or time_chunk < 1):
         raise TrajectoryError(f"time_chunk must be an integer >= 1, found {time_chunk}")
     with np.errstate(invalid="ignore", over="ignore"):  # non-finite samples are reported, not warned about
-        return _verify(scenario, trajectory, fraction, int(time_chunk), instrument)
+        return _verify(scenario, trajectory, fraction, None if time_chunk is None else int(time_chunk), instrument)
 
 
-def _verify(scenario: Scenario, trajectory: Trajectory, fraction: float, time_chunk: int, instrument: Instrument | None) -> VerificationReport:
+def _verify(
+    scenario: Scenario, trajectory: Trajectory, fraction: float, time_chunk: int | None, instrument: Instrument | None,
+) -> VerificationReport:
     inst = scenario.instrument if instrument is None else instrument
     times = trajectory.times
     n_t, n = trajectory.joints.shape[0], trajectory.joints.shape[1]
     if n != scenario.n_positioners:
         raise TrajectoryError(f"trajectory has {n} positioners, scenario has {scenario.n_positioners}")
     pairs = neighbour_pairs(inst, scenario.base_xy)
+    if time_chunk is None:
+        time_chunk = max(1, min(64, CHUNK_PAIR_SAMPLES // max(1, len(pairs))))
     report = VerificationReport(n_positioners=n, n_samples=n_t, n_pairs=len(pairs))
     ids = scenario.ids
     _check_finite(scenario, trajectory, report)
@@ -252,7 +262,7 @@ def _verify(scenario: Scenario, trajectory: Trajectory, fraction: float, time_ch
 
     # Between samples: bisect the intervals whose motion bound is not small against the clearance.
     if n_t > 1:
-        _between_samples(inst, scenario, joints, times, pairs, sample_clear, fraction, report, record, worst)
+        _between_samples(inst, scenario, joints, times, pairs, sample_clear, fraction, report, record, worst, time_chunk)
 
     for p, (t_first, t_worst, value, k) in sorted(worst.items(), key=lambda item: item[1][0]):
         i, j = pairs[p]
@@ -275,21 +285,24 @@ def _verify(scenario: Scenario, trajectory: Trajectory, fraction: float, time_ch
 def _between_samples(
     inst: Instrument, scenario: Scenario, joints: np.ndarray, times: np.ndarray, pairs: np.ndarray, sample_clear: np.ndarray,
     fraction: float, report: VerificationReport, record: Callable[[np.ndarray, np.ndarray, np.ndarray], None],
-    worst: dict[int, list[float]],
+    worst: dict[int, list[float]], time_chunk: int,
 ) -> None:
     """Bisect every interval whose pairs' motion bound is not small against their clearance at
     both ends, until each piece is proven clear (the motion bound of :mod:`fiberplan.planners.safety`)
-    or found colliding (``record``)."""
-    step = np.abs(np.diff(joints, axis=0))  # (T-1, N, 2)
-    motion = motion_bound(point_extents(inst), step)  # (T-1, N)
-    bound = motion[:, pairs[:, 0]] + motion[:, pairs[:, 1]]  # (T-1, P)
-    c0, c1 = sample_clear[:-1], sample_clear[1:]
-    needs = (bound > fraction * np.minimum(c0, c1)) & (c0 >= 0.0) & (c1 >= 0.0) & (bound > 0.0)
-    k_idx, p_idx = np.nonzero(needs)
+    or found colliding (``record``). The intervals to bisect are found ``time_chunk`` at a time."""
+    rho = point_extents(inst)
+    found: list[tuple[np.ndarray, ...]] = []
+    for k0 in range(0, len(joints) - 1, time_chunk):
+        k1 = min(len(joints) - 1, k0 + time_chunk)
+        motion = motion_bound(rho, np.abs(joints[k0 + 1:k1 + 1] - joints[k0:k1]))  # (chunk, N)
+        bound = motion[:, pairs[:, 0]] + motion[:, pairs[:, 1]]  # (chunk, P)
+        c0, c1 = sample_clear[k0:k1], sample_clear[k0 + 1:k1 + 1]
+        needs = (bound > fraction * np.minimum(c0, c1)) & (c0 >= 0.0) & (c1 >= 0.0) & (bound > 0.0)
+        kk, pp = np.nonzero(needs)
+        found.append((kk + k0, pp, c0[kk, pp], c1[kk, pp], bound[kk, pp]))
+    k_idx, p_idx, clo, chi, bnd = (np.concatenate(parts) for parts in zip(*found, strict=True))
     lo = np.zeros(len(k_idx))
     hi = np.ones(len(k_idx))
-    clo, chi = c0[k_idx, p_idx], c1[k_idx, p_idx]
-    bnd = bound[k_idx, p_idx]
     for _ in range(_MAX_BISECTIONS):
         if len(k_idx) == 0:
             break

@@ -291,7 +291,10 @@ def coordinate(
     candidates: dict[str, list[_Piece]] = {}
     scores: dict[str, tuple[int, float]] = {}  # (short, makespan) of each candidate, scored once
     tried: list[dict[str, Any]] = []
-    runs: list[PlanResult] = []  # every planner run, for the statistics
+    runs: list[dict[str, Any]] = []  # every planner run's statistics
+    # The runs from the scenario's own start, whole: only such a run can be the returned trajectory
+    # alone (the others' trajectories are let go as soon as their legs are built).
+    from_start: list[PlanResult] = []
     CHILD_RUNS.clear()
 
     def recorded(leg: Scenario, **kwargs: Any) -> PlanResult:
@@ -302,7 +305,9 @@ def coordinate(
                 progress(done + 0.5 ** number * fraction, f"planner run {number}" + (f": {phase}" if phase else ""))
 
         result = plan_leg(leg, progress=inner, **kwargs)
-        runs.append(result)
+        runs.append(result.stats)
+        if leg.start.shape == scenario.start.shape and np.array_equal(leg.start, scenario.start):
+            from_start.append(result)
         RUN_LOG.append(dict(result.stats))
         return result
 
@@ -338,13 +343,13 @@ def coordinate(
     trajectory = _join(scenario, pieces, dt)
     stats: dict[str, Any] = {"route": route, "structure": structure, "chosen": chosen, "candidates": tried,
                              "planner_runs": len(runs) + len(CHILD_RUNS)} | _leg_stats(scenario, pieces, dt)
-    single = [r for r in runs if np.array_equal(r.trajectory.joints, trajectory.joints)]
+    single = [r for r in from_start if np.array_equal(r.trajectory.joints, trajectory.joints)]
     if single:
         # The planner alone, in one run: its own result, with the route named.
         only = single[0]
         return dataclasses.replace(only, stats=only.stats | stats, settings=dataclasses.asdict(settings),
                                    plan_wall_s=time.perf_counter() - wall0)
-    for run_stats in [r.stats for r in runs] + CHILD_RUNS:  # the planners' counters, summed over every run of every leg tried
+    for run_stats in runs + CHILD_RUNS:  # the planners' counters, summed over every run of every leg tried
         for key, value in run_stats.items():
             if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_)):
                 stats[key] = stats.get(key, 0) + value
