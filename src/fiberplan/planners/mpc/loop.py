@@ -74,7 +74,7 @@ benchmark set but the scaling one: their trajectories are those of before). A la
 a positioner's workspace afresh after :data:`FRESH_AFTER_STEPS` idle steps and frees the idle
 ones (:mod:`.executors`): 50,000 DESI positioners create ~19,000 workspaces of ~50 kB each."""
 
-FRESH_AFTER_STEPS = 50
+FRESH_AFTER_STEPS = 5
 
 def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallback | None = None) -> PlanResult:
     """Plan with decentralised MPC; see the module docstring and ``formulations/mpc.md``."""
