@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -90,6 +91,19 @@ def test_grid_expansion_and_errors(tmp_path):
     bad.write_text(SPEC.format(seeds=2) + "\n[scenario]\ncluster_fraction = [0.5, 1.5]\n")
     with pytest.raises(StudyError, match=r"cluster_fraction must be a number in \[0, 1\], found 1.5"):
         load_study(bad)
+    bad.write_text(SPEC.format(seeds=2) + "\n[scenario]\nmin_start_clearance_mm = -0.1\n")
+    with pytest.raises(StudyError, match=r"min_start_clearance_mm must be a number of mm >= 0, found -0.1"):
+        load_study(bad)
+    # The starts of before the minimum, asked for: their own runs (another key than the default's).
+    good = tmp_path / "good.toml"
+    good.write_text(SPEC.format(seeds=2) + "\n[scenario]\nmin_start_clearance_mm = 0.0\n")
+    zero = load_study(good).tasks
+    assert {t.key for t in zero}.isdisjoint(t.key for t in spec.tasks)
+    t = zero[0]
+    from fiberplan.generate import make_scenario
+
+    expected = make_scenario(t.instrument, t.n_positioners, t.scenario_kind, t.seed, min_start_clearance_mm=0.0)
+    assert np.array_equal(t.scenario().start_deg, expected.start_deg)
     with pytest.raises(StudyError, match="does not exist"):
         load_study(tmp_path / "none.toml")
 

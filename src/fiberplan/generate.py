@@ -146,7 +146,7 @@ def _separated(
     if min_clearance_mm > 0.0:
         raise ScenarioError(
             f"no configuration with every pair at least {min_clearance_mm} mm apart found after {max_rounds} rounds for {n} "
-            "positioners; lower min_start_clearance_mm"
+            "positioners; lower min_start_clearance_mm (--min-start-clearance-mm)"
         )
     raise ScenarioError(
         f"no collision-free configuration found after {max_rounds} rounds for {n} positioners; "
@@ -285,7 +285,7 @@ def make_scenario(
         start = datum
         if given_clearance and len(pairs) and (closest := float(min_pair_clearance(inst, base, orient, datum, pairs).min())) < min_start:
             raise ScenarioError(f"min_start_clearance_mm {min_start} mm: the datum start of an unfold has pairs {closest:.4f} mm "
-                                "apart; lower it or leave it unset")
+                                "apart; lower min_start_clearance_mm (--min-start-clearance-mm) or leave it unset")
     else:
         start = random_configuration(inst, base, orient, pairs, rng, min_clearance_mm=float(min_start))
     if kind == "fold":
