@@ -205,10 +205,10 @@ def test_osqp_matches_cvxpy_on_planner_conflicts(monkeypatch):
     captured = []
     original = mpc_exec._Block.solve
 
-    def spy(self, batch):
+    def spy(self, batch, step=0):
         if len(captured) < 6 and len(batch.index):
             captured.append((self.layout, batch.data(0)))
-        return original(self, batch)
+        return original(self, batch, step)
 
     monkeypatch.setattr(mpc_exec._Block, "solve", spy)
     plan(make_scenario("desi", 37, "random", 5), "mpc", {"max_duration_factor": 0.5})
