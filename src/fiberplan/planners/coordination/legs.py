@@ -211,8 +211,8 @@ def _attempts(
         pieces.append(joints if not pieces else joints[1:])
         end = joints[-1]
         at = at_targets(leg, end)
-        if at.all():
-            return np.concatenate(pieces), k, True
+        if at.all():  # (one piece: the planner's own array, not a copy of it: 200 MB at 50,000 positioners)
+            return (pieces[0] if len(pieces) == 1 else np.concatenate(pieces)), k, True
         if k < attempts and int(at.sum()) > done_before:  # another attempt follows: it starts at the last arrival
             cut = _until_last_arrival(leg, joints)
             pieces[-1] = cut if len(pieces) == 1 else cut[1:]
