@@ -235,8 +235,8 @@ def make_scenario(
             :func:`~fiberplan.geometry.default_safety_margin_mm`, so that no positioner starts
             closer to a neighbour than the planners' safety layers let a step come). Only the
             starts that had a pair closer than this are drawn again (see
-            :func:`random_configuration`); 0 gives the starts of fiberplan 0.x before the
-            minimum existed. For ``unfold`` (the datum start) a given value is checked.
+            :func:`random_configuration`); 0 gives the starts drawn before the minimum existed
+            (before commit 2ebfbe3). For ``unfold`` (the datum start) a given value is checked.
 
     Raises:
         ScenarioError: unknown kind, bad size, or no collision-free configuration found.
@@ -279,7 +279,7 @@ def make_scenario(
 
     given_clearance = min_start_clearance_mm is not None
     min_start = default_safety_margin_mm(inst) if min_start_clearance_mm is None else min_start_clearance_mm
-    if isinstance(min_start, bool) or not isinstance(min_start, (int, float, np.floating)) or not np.isfinite(min_start) or min_start < 0:
+    if isinstance(min_start, bool) or not isinstance(min_start, (int, float, np.integer, np.floating)) or not np.isfinite(min_start) or min_start < 0:
         raise ScenarioError(f"min_start_clearance_mm must be a finite number of mm >= 0, found {min_start_clearance_mm!r}")
     if kind == "unfold":
         start = datum
