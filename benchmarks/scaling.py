@@ -39,11 +39,8 @@ def one(n: int, executor: str, seed: int, instrument: str) -> dict:
     """Generate, plan and verify one scenario in this process; the figures of the run."""
     import resource
 
-    import numpy as np
-
     from fiberplan.generate import make_scenario
     from fiberplan.geometry import min_pair_clearance
-    from fiberplan.layout import neighbour_pairs
     from fiberplan.metrics import summarize
     from fiberplan.planners import plan
     from fiberplan.verify import verify
@@ -54,9 +51,8 @@ def one(n: int, executor: str, seed: int, instrument: str) -> dict:
     t = time.perf_counter()
     scenario = make_scenario(instrument, n, "random", seed)
     gen_s = time.perf_counter() - t
-    pairs = neighbour_pairs(scenario.instrument, scenario.base_xy)
-    start_clearance = float(min_pair_clearance(scenario.instrument, scenario.base_xy, scenario.orient,
-                                               np.radians(scenario.start_deg), pairs).min())
+    start_clearance = float(min_pair_clearance(scenario.instrument, scenario.base_xy, scenario.orient, scenario.start,
+                                               scenario.pairs).min())
     result = plan(scenario, "mpc", {"executor": executor})
     plan_peak = peak_mb()
     t = time.perf_counter()

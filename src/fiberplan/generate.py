@@ -35,6 +35,9 @@ from fiberplan.scenario import TARGET_JOINTS, Scenario
 
 SCENARIO_KINDS = ("random", "unfold", "fold", "clustered")
 
+DRAWN_START_KINDS = ("random", "fold", "clustered")
+"""Kinds whose start is drawn (and keeps ``min_start_clearance_mm``); ``unfold`` starts at the datum."""
+
 Sampler = Callable[[np.ndarray, np.random.Generator], np.ndarray]
 """Draws fiber positions ``(len(rows), 2)`` for the given positioner rows."""
 

@@ -92,7 +92,9 @@ class RunSpec:
     @property
     def _default_start_clearance(self) -> bool:
         """The scenario's start is drawn with the default minimum clearance (not given in ``[scenario]``)."""
-        return self.scenario_kind in ("random", "fold", "clustered") and "min_start_clearance_mm" not in dict(self.scenario_options)
+        from fiberplan.generate import DRAWN_START_KINDS
+
+        return self.scenario_kind in DRAWN_START_KINDS and "min_start_clearance_mm" not in dict(self.scenario_options)
 
     def scenario(self) -> Scenario:
         """The run's scenario (seeded: the same spec gives the same scenario)."""

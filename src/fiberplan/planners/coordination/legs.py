@@ -65,18 +65,11 @@ def _plan_part(leg: Scenario, plan_leg: PlanLeg, **kwargs: object) -> tuple[np.n
     neighbours (who may yield to them), the neighbours around those held as locked obstacles; the
     rest of the field holds where it is, as it would in a whole plan, and is not planned: a leg's
     later attempts and restarts then cost what the positioners still moving cost, not the field."""
-    n = leg.n_positioners
-    away = ~at_targets(leg, leg.start) & ~leg.locked
-    pairs = leg.pairs
-    if n <= LOCAL_ABOVE or not away.any() or not len(pairs):
+    moving = _moving_part(leg)
+    if moving is None:
         result = plan_leg(leg, **kwargs)
         return result.trajectory.joints, result.trajectory.duration_s
-    free = _with_neighbours(away, pairs)
-    ring = _with_neighbours(free, pairs) & ~free
-    rows = np.flatnonzero(free | ring)
-    if len(rows) > LOCAL_SHARE * n:
-        result = plan_leg(leg, **kwargs)
-        return result.trajectory.joints, result.trajectory.duration_s
+    rows, ring = moving
     part = leg.subset(rows, name=f"{leg.name}:part")
     held = ring[rows]
     part = _replace(part, locked=part.locked | held, target_kind=np.where(held, TARGET_NONE, part.target_kind),
@@ -86,6 +79,20 @@ def _plan_part(leg: Scenario, plan_leg: PlanLeg, **kwargs: object) -> tuple[np.n
     joints = np.repeat(leg.start[None], len(moved), axis=0)
     joints[:, rows] = moved
     return joints, result.trajectory.duration_s
+
+
+def _moving_part(leg: Scenario) -> tuple[np.ndarray, np.ndarray] | None:
+    """The rows :func:`_plan_part` plans (those away, their neighbours and the ring around them)
+    and the ring mask, or ``None`` when the leg is planned whole (small, nothing away, or the part
+    more than :data:`LOCAL_SHARE` of the field)."""
+    n, pairs = leg.n_positioners, leg.pairs
+    away = ~at_targets(leg, leg.start) & ~leg.locked
+    if n <= LOCAL_ABOVE or not away.any() or not len(pairs):
+        return None
+    free = _with_neighbours(away, pairs)
+    ring = _with_neighbours(free, pairs) & ~free
+    rows = np.flatnonzero(free | ring)
+    return (rows, ring) if len(rows) <= LOCAL_SHARE * n else None
 
 
 def _with_neighbours(mask: np.ndarray, pairs: np.ndarray) -> np.ndarray:
