@@ -174,3 +174,50 @@ def test_warm_start_planners_are_planned_by_the_registry(crossing: Scenario) -> 
         solve_central(crossing, settings)
     result = plan(crossing, "central", settings)  # the registry plans the dnf first
     assert result.stats["chosen"] == "dnf" or "dnf" in [c["source"] for c in result.stats["candidates"]]
+
+
+def test_polygon_zones_are_separated_as_whole_bodies() -> None:
+    """MOONS' own model: one separating line per zone pair of the interaction table (15), not per
+    edge pair (134); a polygon's vertices enter once; a body pair's clearance is the smallest of its
+    edge pairs'. Capsule instruments keep one body per capsule, in the same order."""
+    from fiberplan.geometry import pair_clearance
+    from fiberplan.planners.central.nlp import _bodies, _capsule_points
+
+    moons = load_instrument("moons")
+    bodies = _bodies(moons)
+    assert len(moons.capsule_pairs) == 134 and len(bodies.combos) == len(moons.zone_pairs) == 15
+    assert not bodies.identity
+    points = _capsule_points(moons, bodies)
+    corners = {(int(b), x, y) for b, x, y in zip(points.body, points.dist, points.lateral, strict=True)}
+    assert len(corners) == len(points.body) == 27  # 8 zones: a disc and 26 polygon corners, none twice
+    rng = np.random.default_rng(3)
+    base = np.array([[0.0, 0.0], [25.0, 0.0]])
+    joints = np.stack([rng.uniform(moons.limits_rad[:, 0], moons.limits_rad[:, 1], size=(2, 2)) for _ in range(50)])
+    edge = pair_clearance(moons, base, np.zeros(2), joints, np.array([[0, 1]])).clearance  # (50, 1, 134)
+    body = bodies.reduce(edge)
+    for b in range(len(bodies.combos)):
+        np.testing.assert_array_equal(body[..., b], edge[..., bodies.of_combo == b].min(axis=-1))
+    for name in ("desi", "sdss", "moons-capsules"):
+        inst = load_instrument(name)
+        assert _bodies(inst).identity
+        np.testing.assert_array_equal(_bodies(inst).combos, np.array(inst.capsule_pairs))
+
+
+def test_moons_zones_swap_converges_and_verifies() -> None:
+    """Two MOONS positioners (MOONS' own zones) whose fibres swap sides: the reference converges
+    from the one-after-the-other start and passes the verifier, between the bound and that start."""
+    moons = load_instrument("moons")
+    base = np.array([[0.0, 0.0], [25.0, 0.0]])
+
+    def joints(xy: list[tuple[float, float]]) -> np.ndarray:
+        return np.stack([inverse_kinematics(moons, base[i : i + 1], np.zeros(1), np.array([xy[i]]), np.ones(1))[0] for i in range(2)])
+
+    scenario = Scenario(instrument=moons, ids=np.arange(2), base_xy=base, orient_deg=np.zeros(2),
+                        start_deg=np.degrees(joints([(13.0, 6.0), (12.0, -6.0)])), target_kind=np.full(2, TARGET_JOINTS),
+                        target_values=np.degrees(joints([(13.0, -6.0), (12.0, 6.0)])), target_parity=np.zeros(2, dtype=np.int64),
+                        name="moons swap")
+    result = central_reference(scenario, {"warm_start": ["sequential"]})
+    assert result.stats["verified"] is True and result.stats["status"] == "Solve_Succeeded"
+    assert verify(scenario, result.trajectory).ok
+    one_after_other = float(move_times(moons, scenario.start, scenario.target).sum())
+    assert lower_bound_s(scenario) <= result.stats["makespan_s"] < one_after_other

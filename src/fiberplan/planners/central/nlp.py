@@ -74,11 +74,61 @@ class CentralSolution:
 
 # ---------------------------------------------------------------------------- geometry tables
 @dataclass(frozen=True)
-class _Points:
-    """Capsule segment end points of one positioner type, as used by the NLP.
+class _Bodies:
+    """The convex bodies the NLP separates: a polygon zone (its edge capsules together) or a
+    capsule of its own, and the body pairs the instrument checks.
 
-    ``arm[p]`` is 0 (alpha) or 1 (beta), ``dist[p]`` the distance along that arm, ``capsule[p]``
-    the capsule it belongs to, ``radius[p]`` its radius, ``sagitta[p]`` the coefficient ``s_p``
+    A separating line per body pair rather than per capsule pair: two convex bodies are apart
+    exactly when a line separates them (every vertex of one on its side, by the radius), so a
+    polygon of ``e`` edges needs one line per neighbouring body, not ``e`` x ``e'`` (MOONS' own
+    model: 134 checked edge pairs, 16 zone pairs). For instruments made of capsules, bodies are
+    the capsules and body pairs the capsule pairs, in the same order.
+    """
+
+    of_capsule: np.ndarray  # (C,) the body of each capsule
+    combos: np.ndarray  # (B, 2) body pairs (body of i, body of j)
+    of_combo: np.ndarray  # (K,) the body pair of each capsule pair of ``Instrument.capsule_pairs``
+
+    @property
+    def identity(self) -> bool:
+        """Every capsule is a body of its own (nothing to group)."""
+        return len(self.combos) == len(self.of_combo) and bool(np.all(self.of_combo == np.arange(len(self.of_combo))))
+
+    def reduce(self, clearance: np.ndarray) -> np.ndarray:
+        """Clearances ``(..., K)`` of capsule pairs -> ``(..., B)`` of body pairs (the smallest)."""
+        if self.identity:
+            return clearance
+        out = np.empty((*clearance.shape[:-1], len(self.combos)))
+        for b in range(len(self.combos)):
+            out[..., b] = clearance[..., self.of_combo == b].min(axis=-1)
+        return out
+
+
+def _bodies(instrument: Instrument) -> _Bodies:
+    names: list[str] = []
+    of_capsule = []
+    for cap in instrument.capsules:
+        if cap.zone_name not in names:
+            names.append(cap.zone_name)
+        of_capsule.append(names.index(cap.zone_name))
+    body = np.array(of_capsule, dtype=np.int64)
+    combos: list[tuple[int, int]] = []
+    of_combo = []
+    for a, b in instrument.capsule_pairs:
+        pair = (int(body[a]), int(body[b]))
+        if pair not in combos:
+            combos.append(pair)
+        of_combo.append(combos.index(pair))
+    return _Bodies(body, np.array(combos, dtype=np.int64).reshape(-1, 2), np.array(of_combo, dtype=np.int64))
+
+
+@dataclass(frozen=True)
+class _Points:
+    """Capsule segment end points of one positioner type, as used by the NLP (a polygon's
+    vertices once each).
+
+    ``arm[p]`` is 0 (alpha) or 1 (beta), ``dist[p]`` the distance along that arm, ``body[p]``
+    the body (:class:`_Bodies`) it belongs to, ``radius[p]`` its radius, ``sagitta[p]`` the coefficient ``s_p``
     of the worst-case chord deviation ``s_p h^2`` (joints at full speed), and
     ``chord_alpha[p]``, ``chord_beta[p]`` the coefficients of the chord deviation from the
     joint increments of the interval, ``c_a \\Delta\alpha^2 + c_b \\Delta\beta^2``.
@@ -86,7 +136,7 @@ class _Points:
 
     arm: np.ndarray
     dist: np.ndarray
-    capsule: np.ndarray
+    body: np.ndarray
     lateral: np.ndarray  # offset to the arm's left (zero for a capsule on the arm's axis)
     radius: np.ndarray
     sagitta: np.ndarray
@@ -94,7 +144,7 @@ class _Points:
     chord_beta: np.ndarray
 
 
-def _capsule_points(instrument: Instrument) -> _Points:
+def _capsule_points(instrument: Instrument, bodies: _Bodies) -> _Points:
     r"""End points of every capsule and their chord-deviation coefficients.
 
     A point at distance ``s`` along the beta arm is ``x = e + s u(a + b)`` with the elbow
@@ -106,25 +156,30 @@ def _capsule_points(instrument: Instrument) -> _Points:
     \le (l_1 + 2 s) \Delta a^2 + 2 s \Delta b^2`` (smooth), used by the NLP.
     """
     wa, wb = instrument.alpha_speed_rad_s, instrument.beta_speed_rad_s
-    arm, dist, lateral, capsule, radius, sag, chord_a, chord_b = [], [], [], [], [], [], [], []
+    arm, dist, lateral, body, radius, sag, chord_a, chord_b = [], [], [], [], [], [], [], []
+    seen: set[tuple[int, str, float, float]] = set()
     for c_idx, cap in enumerate(instrument.capsules):
         ends = [(cap.start_mm, cap.start_y_mm)]
         if (cap.start_mm, cap.start_y_mm) != (cap.end_mm, cap.end_y_mm):
             ends.append((cap.end_mm, cap.end_y_mm))
         for x, y in ends:
+            key = (int(bodies.of_capsule[c_idx]), cap.arm, x, y)
+            if key in seen:  # a polygon's vertex, shared by two of its edges
+                continue
+            seen.add(key)
             is_beta = cap.arm == "beta"
             arm.append(1 if is_beta else 0)
             dist.append(x)
             lateral.append(y)
             s = x if y == 0.0 else math.hypot(x, y)  # distance from the joint, for the curvature bounds
-            capsule.append(c_idx)
+            body.append(int(bodies.of_capsule[c_idx]))
             radius.append(cap.radius_mm)
             curvature = instrument.alpha_arm_mm * wa**2 + abs(s) * (wa + wb) ** 2 if is_beta else abs(s) * wa**2
             sag.append(curvature / 8.0)
             chord_a.append((instrument.alpha_arm_mm + 2 * abs(s)) / 8.0 if is_beta else abs(s) / 8.0)
             chord_b.append(2 * abs(s) / 8.0 if is_beta else 0.0)
     return _Points(
-        np.array(arm), np.array(dist, dtype=float), np.array(capsule), np.array(lateral, dtype=float),
+        np.array(arm), np.array(dist, dtype=float), np.array(body), np.array(lateral, dtype=float),
         np.array(radius, dtype=float), np.array(sag, dtype=float), np.array(chord_a), np.array(chord_b),
     )
 
@@ -150,14 +205,15 @@ def _motion_bound(instrument: Instrument, joints: np.ndarray) -> np.ndarray:
     return motion_bound(point_extents(instrument), delta)
 
 
-def _close_intervals(scenario: Scenario, joints: np.ndarray, activate_mm: float) -> np.ndarray:
-    """Boolean ``(T, P, K)``: combination ``K`` of pair ``P`` comes within ``activate_mm`` on interval ``k``.
+def _close_intervals(problem: _Problem, joints: np.ndarray, activate_mm: float) -> np.ndarray:
+    """Boolean ``(T, P, B)``: body pair ``B`` of pair ``P`` comes within ``activate_mm`` on interval ``k``.
 
     The clearance at the two knots minus the motion bound of the interval bounds the clearance
     anywhere in between.
     """
+    scenario = problem.scenario
     inst = scenario.instrument
-    clear = pair_clearance(inst, scenario.base_xy, scenario.orient, joints, scenario.pairs).clearance
+    clear = problem.bodies.reduce(pair_clearance(inst, scenario.base_xy, scenario.orient, joints, scenario.pairs).clearance)
     bound = _motion_bound(inst, joints)
     pairs = scenario.pairs
     move = bound[:, pairs[:, 0]] + bound[:, pairs[:, 1]]
@@ -176,9 +232,10 @@ class _Problem:
     lower_bound_s: float
     energy_ref: float
     tau_fixed: float | None
+    bodies: _Bodies
     points: _Points
-    combos: np.ndarray  # (K, 2) capsule indices of i and j
-    end_clearance: np.ndarray  # (2, P, K) clearances at the (fixed) start and target
+    combos: np.ndarray  # (B, 2) body indices of i and j (``bodies.combos``)
+    end_clearance: np.ndarray  # (2, P, B) clearances at the (fixed) start and target
 
     @property
     def n(self) -> int:
@@ -195,6 +252,7 @@ def _make_problem(scenario: Scenario, settings: CentralSettings) -> _Problem:
     delta = scenario.target - scenario.start
     energy_ref = float(np.sum(delta**2) / lb) if lb > 0 else 0.0
     tau_fixed = None
+    bodies = _bodies(scenario.instrument)
     if settings.mode == "energy":
         tf = settings.makespan_s if settings.makespan_s is not None else settings.makespan_factor * lb
         if tf < lb * (1 - 1e-9):
@@ -210,11 +268,12 @@ def _make_problem(scenario: Scenario, settings: CentralSettings) -> _Problem:
         lower_bound_s=lb,
         energy_ref=energy_ref,
         tau_fixed=tau_fixed,
-        points=_capsule_points(scenario.instrument),
-        combos=np.array(scenario.instrument.capsule_pairs, dtype=np.int64).reshape(-1, 2),
-        end_clearance=pair_clearance(
+        bodies=bodies,
+        points=_capsule_points(scenario.instrument, bodies),
+        combos=bodies.combos,
+        end_clearance=bodies.reduce(pair_clearance(
             scenario.instrument, scenario.base_xy, scenario.orient, np.stack([scenario.start, scenario.target]), scenario.pairs
-        ).clearance,
+        ).clearance),
     )
 
 
@@ -354,7 +413,7 @@ def _separation(problem: _Problem, active: np.ndarray, q: Any, lines: Any, px_al
     for side, (pos, cap_col) in enumerate(((i_l, 0), (j_l, 1))):
         cap = problem.combos[c_l, cap_col]
         for p in range(len(pts.arm)):
-            use = pts.capsule[p] == cap
+            use = pts.body[p] == cap
             if not np.any(use):
                 continue
             lidx = np.flatnonzero(use)
@@ -398,7 +457,7 @@ def _end_relief(problem: _Problem, active: np.ndarray) -> np.ndarray:
     k_l, p_l, c_l = active[:, 0], active[:, 1], active[:, 2]
     pts = problem.points
     cap_i, cap_j = problem.combos[c_l, 0], problem.combos[c_l, 1]
-    sag_max = np.array([pts.sagitta[pts.capsule == c].max() for c in range(len(problem.scenario.instrument.capsules))])
+    sag_max = np.array([pts.sagitta[pts.body == c].max() for c in range(int(problem.bodies.of_capsule.max()) + 1)])
     demand = st.margin_mm + (sag_max[cap_i] + sag_max[cap_j]) * (2.0 * problem.lower_bound_s / problem.steps) ** 2
     for end, k_end in ((0, 0), (1, problem.steps - 1)):
         at_end = k_l == k_end
@@ -411,7 +470,7 @@ def _end_relief(problem: _Problem, active: np.ndarray) -> np.ndarray:
 def _initial_lines(problem: _Problem, active: np.ndarray, guess_q: np.ndarray) -> np.ndarray:
     """Separating lines ``(L, 3)`` (``n_x, n_y, c``, with ``c`` relative to the pair's mid-base) from the guess.
 
-    The normal is the direction between the closest points of the two capsules at the knot
+    The normal is the direction between the closest points of the two bodies at the knot
     (of the two) where they are closer; the offset is half-way between the two sets of
     end points projected on it (inflated by their radii).
     """
@@ -429,15 +488,23 @@ def _initial_lines(problem: _Problem, active: np.ndarray, guess_q: np.ndarray) -
     from fiberplan.geometry import capsule_segments
 
     seg_start, seg_end = capsule_segments(inst, sc.base_xy, sc.orient, guess_q)  # (T+1, N, C, 2)
+    # The capsule pairs of each line's body pair (a body's capsules share one radius, so the
+    # closest segments are the closest pair of the bodies' edges).
+    capsule_combos = np.array(inst.capsule_pairs, dtype=np.int64).reshape(-1, 2)
+    members = [np.flatnonzero(problem.bodies.of_combo == b) for b in range(len(problem.combos))]
     for dk in (0, 1):
         kk = k_l + dk
-        p0, p1 = seg_start[kk, i_l, cap_i], seg_end[kk, i_l, cap_i]
-        q0, q1 = seg_start[kk, j_l, cap_j], seg_end[kk, j_l, cap_j]
-        dist, s, t = segment_distance(p0, p1, q0, q1)
-        direction = (p0 + s[:, None] * (p1 - p0)) - (q0 + t[:, None] * (q1 - q0))
-        better = dist < best
-        normals[better] = direction[better]
-        best = np.minimum(best, dist)
+        for r in range(max(len(m) for m in members)):  # the r-th capsule pair of every line's body pair
+            combo_r = np.array([m[r] if len(m) > r else -1 for m in members])[c_l]
+            rows = np.flatnonzero(combo_r >= 0)
+            ca, cb = capsule_combos[combo_r[rows], 0], capsule_combos[combo_r[rows], 1]
+            p0, p1 = seg_start[kk[rows], i_l[rows], ca], seg_end[kk[rows], i_l[rows], ca]
+            q0, q1 = seg_start[kk[rows], j_l[rows], cb], seg_end[kk[rows], j_l[rows], cb]
+            dist, s, t = segment_distance(p0, p1, q0, q1)
+            direction = (p0 + s[:, None] * (p1 - p0)) - (q0 + t[:, None] * (q1 - q0))
+            better = dist < best[rows]
+            normals[rows[better]] = direction[better]
+            best[rows] = np.minimum(best[rows], dist)
     norm = np.linalg.norm(normals, axis=1)
     fallback = norm < 1e-6
     normals[fallback] = sc.base_xy[i_l[fallback]] - sc.base_xy[j_l[fallback]]
@@ -448,10 +515,10 @@ def _initial_lines(problem: _Problem, active: np.ndarray, guess_q: np.ndarray) -
     for p in range(len(pts.arm)):
         for dk in (0, 1):
             kk = k_l + dk
-            on_i = pts.capsule[p] == cap_i
+            on_i = pts.body[p] == cap_i
             proj_i = np.einsum("li,li->l", normals, pos[kk, i_l, p] - mid) - pts.radius[p]
             lo_i = np.where(on_i, np.minimum(lo_i, proj_i), lo_i)
-            on_j = pts.capsule[p] == cap_j
+            on_j = pts.body[p] == cap_j
             proj_j = np.einsum("li,li->l", normals, pos[kk, j_l, p] - mid) + pts.radius[p]
             hi_j = np.where(on_j, np.maximum(hi_j, proj_j), hi_j)
     return np.column_stack([normals, 0.5 * (lo_i + hi_j)])
@@ -459,7 +526,7 @@ def _initial_lines(problem: _Problem, active: np.ndarray, guess_q: np.ndarray) -
 
 def _activate(problem: _Problem, joints: np.ndarray, window: int) -> np.ndarray:
     """Active-line mask ``(T, P, K)`` from a guess, dilated by ``window`` intervals in time."""
-    close = _close_intervals(problem.scenario, joints, problem.settings.activate_mm)
+    close = _close_intervals(problem, joints, problem.settings.activate_mm)
     if window > 0 and close.any():
         dilated = close.copy()
         for shift in range(1, window + 1):
@@ -491,7 +558,7 @@ def _solve_candidate(problem: _Problem, source: str, guess_q: np.ndarray, guess_
             break
         mask |= missing
     finite = bool(np.all(np.isfinite(q)) and np.isfinite(tau))
-    converged = finite and raw["status"] in _IPOPT_SUCCESS and not (_close_intervals(problem.scenario, q, st.activate_mm) & ~mask).any()
+    converged = finite and raw["status"] in _IPOPT_SUCCESS and not (_close_intervals(problem, q, st.activate_mm) & ~mask).any()
     status = raw["status"] if raw["status"] not in _IPOPT_SUCCESS or converged else "Lazy_Rounds_Exhausted"
     if not finite:
         status = "Non_Finite_Solution"
