@@ -277,11 +277,12 @@ def _make_problem(scenario: Scenario, settings: CentralSettings) -> _Problem:
     )
 
 
-def _solve_nlp(problem: _Problem, active: np.ndarray, guess_q: np.ndarray, guess_tau: float) -> tuple[dict[str, Any], float]:
-    """Build the NLP for the ``active`` lines (``(L, 3)`` rows ``k, pair, combo``) and solve it once.
+def _solve_nlp(problem: _Problem, active: np.ndarray, guesses: list[tuple[np.ndarray, float]]) -> tuple[dict[str, Any], float]:
+    """Build the NLP for the ``active`` lines (``(L, 3)`` rows ``k, pair, combo``) once and solve it
+    from each guess ``(q, tau)`` in turn until IPOPT succeeds.
 
-    Returns the raw solution dictionary (``q``, ``tau``, ``status``, ``iterations``,
-    ``objective``, ``solve_s``) and the build time.
+    Returns the raw solution dictionary of the last solve (``q``, ``tau``, ``status``,
+    ``objective``; ``iterations`` and ``solve_s`` summed over the solves) and the build time.
     """
     import casadi as ca
 
@@ -361,10 +362,6 @@ def _solve_nlp(problem: _Problem, active: np.ndarray, guess_q: np.ndarray, guess
     lbx = np.concatenate([lo_q.ravel(), [tau_lo], line_lo])
     ubx = np.concatenate([hi_q.ravel(), [tau_hi], line_hi])
 
-    x0_q = np.clip(guess_q, lo_q, hi_q)
-    x0_tau = float(np.clip(guess_tau, tau_lo, tau_hi))
-    x0 = np.concatenate([x0_q.ravel(), [x0_tau], _initial_lines(problem, active, x0_q).ravel()])
-
     opts: dict[str, Any] = {
         "print_time": False,
         "ipopt": {
@@ -381,19 +378,28 @@ def _solve_nlp(problem: _Problem, active: np.ndarray, guess_q: np.ndarray, guess
     }
     solver = ca.nlpsol("central", "ipopt", {"x": z, "f": objective, "g": g}, opts)
     build_s = time.perf_counter() - t_build
-    t0 = time.perf_counter()
-    sol = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=np.concatenate(lbg), ubg=np.concatenate(ubg))
-    solve_s = time.perf_counter() - t0
-    solver_stats = solver.stats()
-    x = np.array(sol["x"]).ravel()
-    return {
-        "q": x[:n_q].reshape(T + 1, n, 2),
-        "tau": float(x[n_q]),
-        "status": str(solver_stats.get("return_status", "unknown")),
-        "iterations": int(solver_stats.get("iter_count", 0)),
-        "objective": float(sol["f"]),
-        "solve_s": solve_s,
-    }, build_s
+    raw: dict[str, Any] = {"iterations": 0, "solve_s": 0.0}
+    for guess_q, guess_tau in guesses:
+        t_start = time.perf_counter()  # the start point (lines from the guess) is set-up too
+        x0_q = np.clip(guess_q, lo_q, hi_q)
+        x0_tau = float(np.clip(guess_tau, tau_lo, tau_hi))
+        x0 = np.concatenate([x0_q.ravel(), [x0_tau], _initial_lines(problem, active, x0_q).ravel()])
+        t0 = time.perf_counter()
+        build_s += t0 - t_start
+        sol = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=np.concatenate(lbg), ubg=np.concatenate(ubg))
+        solver_stats = solver.stats()
+        x = np.array(sol["x"]).ravel()
+        raw |= {
+            "q": x[:n_q].reshape(T + 1, n, 2),
+            "tau": float(x[n_q]),
+            "status": str(solver_stats.get("return_status", "unknown")),
+            "iterations": raw["iterations"] + int(solver_stats.get("iter_count", 0)),
+            "objective": float(sol["f"]),
+            "solve_s": raw["solve_s"] + time.perf_counter() - t0,
+        }
+        if raw["status"] in _IPOPT_SUCCESS:
+            break
+    return raw, build_s
 
 
 def _separation(problem: _Problem, active: np.ndarray, q: Any, lines: Any, px_all: Any, py_all: Any) -> tuple[Any, Any]:
@@ -545,7 +551,12 @@ def _solve_candidate(problem: _Problem, source: str, guess_q: np.ndarray, guess_
     raw: dict[str, Any] = {}
     for _ in range(st.lazy_rounds + 1):
         active = np.argwhere(mask)
-        raw, b_s = _solve_nlp(problem, active, q, tau)
+        # A lazy round starts from the last solution, where the bodies of its new lines may touch
+        # or overlap; if IPOPT finds no way out from there, the same NLP is solved from the
+        # candidate's warm start (a planner's verified trajectory is apart everywhere) before
+        # the candidate is given up.
+        guesses = [(q, tau)] if rounds == 0 else [(q, tau), (guess_q, guess_tau)]
+        raw, b_s = _solve_nlp(problem, active, guesses)
         rounds += 1
         iterations += raw["iterations"]
         solve_s += raw["solve_s"]
