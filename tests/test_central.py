@@ -221,3 +221,23 @@ def test_moons_zones_swap_converges_and_verifies() -> None:
     assert verify(scenario, result.trajectory).ok
     one_after_other = float(move_times(moons, scenario.start, scenario.target).sum())
     assert lower_bound_s(scenario) <= result.stats["makespan_s"] < one_after_other
+
+
+def test_a_failed_start_is_followed_by_the_next(crossing: Scenario) -> None:
+    """One NLP, several starts: a start IPOPT cannot use (here non-finite) is followed by the next,
+    whose solve counts too; a lazy round falls back on the candidate's warm start this way."""
+    from fiberplan.planners.central.nlp import _activate, _make_problem, _solve_nlp
+    from fiberplan.planners.central.solve import _sequential_guess
+
+    settings = make_settings("central", crossing, {"warm_start": ["sequential"]})
+    problem = _make_problem(crossing, settings)
+    q, tau = _sequential_guess(problem)
+    active = np.argwhere(_activate(problem, q, settings.activation_window))
+    alone, _ = _solve_nlp(problem, active, [(q, tau)])
+    assert alone["status"] == "Solve_Succeeded"
+    bad, _ = _solve_nlp(problem, active, [(np.full_like(q, np.nan), tau)])
+    assert bad["status"] not in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+    both, _ = _solve_nlp(problem, active, [(np.full_like(q, np.nan), tau), (q, tau)])
+    assert both["status"] == "Solve_Succeeded"
+    np.testing.assert_allclose(both["q"], alone["q"], atol=1e-9)
+    assert both["solve_s"] > 0 and both["iterations"] >= alone["iterations"]
