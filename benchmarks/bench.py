@@ -7,7 +7,7 @@ entry per group (instrument, size, scenario kind and options, planner, settings)
 
     python benchmarks/bench.py run benchmarks/studies/mpc_desi.toml [--workers 2]
     python benchmarks/bench.py table benchmarks/results/mpc_desi.json       # Markdown, for docs/results.md
-    python benchmarks/bench.py compare --instrument moons -n 7 --seeds 30    # gaps to central -> results/central_moons_7.json
+    python benchmarks/bench.py compare --instrument moons -n 7 --seeds 30    # gaps to central -> results/central_moons_7.json (--name, --overwrite)
 
 Timing figures (``plan_wall_s``) are only comparable between runs on one quiet machine with the
 same ``--workers``; the scaling study runs with ``--workers 1``.
@@ -123,6 +123,9 @@ def cmd_table(args: argparse.Namespace) -> None:
 def cmd_compare(args: argparse.Namespace) -> None:
     from fiberplan.studies import run_compare
 
+    name = args.name or f"central_{args.instrument}_{args.n}"
+    if (RESULTS / f"{name}.json").exists() and not args.overwrite:  # checked before hours of solving
+        sys.exit(f"bench.py compare: {RESULTS / f'{name}.json'} exists; give --name for a new file or --overwrite to replace it")
     settings: dict[str, dict[str, Any]] = {}
     for item in args.set:
         key, raw = item.split("=", 1)
@@ -130,7 +133,6 @@ def cmd_compare(args: argparse.Namespace) -> None:
         settings.setdefault(planner, {})[name] = json.loads(raw)
     result = run_compare(args.instrument, args.n, args.planners.split(","), list(range(args.seeds)), kind=args.kind,
                          settings=settings, energy_gap=args.energy_gap)
-    name = f"central_{args.instrument}_{args.n}"
     path = write_summary(name, {"command": " ".join(["python", "benchmarks/bench.py", *sys.argv[1:]])} | result.to_dict())
     print(f"wrote {path}")
 
@@ -152,6 +154,8 @@ def main() -> None:
     comp.add_argument("--kind", default="hard")
     comp.add_argument("--set", action="append", default=[], metavar="PLANNER.KEY=JSON")
     comp.add_argument("--energy-gap", action="store_true")
+    comp.add_argument("--name", default=None, help="result file name (default central_<instrument>_<n>)")
+    comp.add_argument("--overwrite", action="store_true", help="replace an existing result file of that name")
     args = parser.parse_args()
     {"run": cmd_run, "table": cmd_table, "compare": cmd_compare}[args.command](args)
 
