@@ -6,7 +6,7 @@ reference 004, section 7.5 does for the DNF. CasADi is imported by this module o
 
 Decision variables: the joint angles ``q[k]`` of every positioner at ``T + 1`` knots, the
 scaled final time ``tau = t_f / t_LB`` (``t_LB`` the lower bound of ``metrics``), and one
-separating line ``(n, c)`` per constrained capsule combination and interval. Velocities are
+separating line ``(n, c)`` per constrained body pair (a capsule, or a polygon zone whole) and interval. Velocities are
 ``u[k] = (q[k+1] - q[k]) / h`` with ``h = t_f / T`` (eliminated, so the dynamics and speed
 bounds are linear in ``(q, t_f)``):
 
@@ -24,7 +24,7 @@ bounds are linear in ``(q, t_f)``):
 
 where ``delta`` bounds how far a capsule end point strays from its chord between two knots
 (so the linear joint motion between knots is covered, not only the knots). Lines are added
-lazily: only for (pair, combination, interval) triples that come within ``activate_mm`` of
+lazily: only for (pair, body pair, interval) triples that come within ``activate_mm`` of
 contact along the current guess; after every solve the triples the solution brings close
 are added and the problem is solved again (``lazy_rounds``).
 

@@ -81,7 +81,7 @@ class _Bodies:
     A separating line per body pair rather than per capsule pair: two convex bodies are apart
     exactly when a line separates them (every vertex of one on its side, by the radius), so a
     polygon of ``e`` edges needs one line per neighbouring body, not ``e`` x ``e'`` (MOONS' own
-    model: 134 checked edge pairs, 16 zone pairs). For instruments made of capsules, bodies are
+    model: 134 checked edge pairs, 15 zone pairs). For instruments made of capsules, bodies are
     the capsules and body pairs the capsule pairs, in the same order.
     """
 

@@ -47,7 +47,7 @@ class CentralSettings:
                                       group="problem")
     margin_mm: float = setting(0.02, "extra clearance m demanded by the collision constraints", unit="mm", low=0.0, high=10.0,
                                group="problem")
-    activate_mm: float = setting(2.5, "a capsule combination gets a separating line where its clearance along the guess is below this",
+    activate_mm: float = setting(2.5, "a body pair (capsule or polygon zone) gets a line where its clearance along the guess is below this",
                                  unit="mm", low=0.0, high=1000.0, group="problem")
     activation_window: int = setting(2, "the initial activation also covers this many intervals around each close approach", low=0,
                                      high=1000, group="problem")
