@@ -241,3 +241,14 @@ def test_a_failed_start_is_followed_by_the_next(crossing: Scenario) -> None:
     assert both["status"] == "Solve_Succeeded"
     np.testing.assert_allclose(both["q"], alone["q"], atol=1e-9)
     assert both["solve_s"] > 0 and both["iterations"] >= alone["iterations"]
+
+
+def test_a_solution_short_of_lines_is_not_converged(crossing: Scenario) -> None:
+    """A solve whose solution needs lines it did not have, with no lazy round left, is not
+    converged (the lines are not added after the last solve and then counted as if solved with)."""
+    settings = make_settings("central", crossing, {"warm_start": ["sequential"], "activate_mm": 0.5, "activation_window": 0,
+                                                   "lazy_rounds": 0})
+    cand = solve_central(crossing, settings)[0].candidates[0]
+    assert cand.rounds == 1 and not cand.converged and cand.status == "Lazy_Rounds_Exhausted"
+    more = solve_central(crossing, dataclasses.replace(settings, lazy_rounds=4))[0].candidates[0]
+    assert more.converged and more.rounds > 1 and more.lines > cand.lines

@@ -567,8 +567,11 @@ def _solve_candidate(problem: _Problem, source: str, guess_q: np.ndarray, guess_
         missing = _activate(problem, q, 1) & ~mask
         if not missing.any():
             break
-        mask |= missing
+        if rounds > st.lazy_rounds:  # no round left: the last solve did not have these lines
+            break
+        mask = mask | missing
     finite = bool(np.all(np.isfinite(q)) and np.isfinite(tau))
+    # Converged: IPOPT succeeded with every line the solution needs (the mask of the last solve).
     converged = finite and raw["status"] in _IPOPT_SUCCESS and not (_close_intervals(problem, q, st.activate_mm) & ~mask).any()
     status = raw["status"] if raw["status"] not in _IPOPT_SUCCESS or converged else "Lazy_Rounds_Exhausted"
     if not finite:
