@@ -278,7 +278,7 @@ def _make_problem(scenario: Scenario, settings: CentralSettings) -> _Problem:
 
 
 def _solve_nlp(problem: _Problem, active: np.ndarray, guesses: list[tuple[np.ndarray, float]]) -> tuple[dict[str, Any], float]:
-    """Build the NLP for the ``active`` lines (``(L, 3)`` rows ``k, pair, combo``) once and solve it
+    """Build the NLP for the ``active`` lines (``(L, 3)`` rows ``k, pair, body pair``) once and solve it
     from each guess ``(q, tau)`` in turn until IPOPT succeeds.
 
     Returns the raw solution dictionary of the last solve (``q``, ``tau``, ``status``,
@@ -531,7 +531,7 @@ def _initial_lines(problem: _Problem, active: np.ndarray, guess_q: np.ndarray) -
 
 
 def _activate(problem: _Problem, joints: np.ndarray, window: int) -> np.ndarray:
-    """Active-line mask ``(T, P, K)`` from a guess, dilated by ``window`` intervals in time."""
+    """Active-line mask ``(T, P, B)`` from a guess, dilated by ``window`` intervals in time."""
     close = _close_intervals(problem, joints, problem.settings.activate_mm)
     if window > 0 and close.any():
         dilated = close.copy()
