@@ -129,8 +129,8 @@ def cmd_compare(args: argparse.Namespace) -> None:
     settings: dict[str, dict[str, Any]] = {}
     for item in args.set:
         key, raw = item.split("=", 1)
-        planner, name = key.split(".", 1)
-        settings.setdefault(planner, {})[name] = json.loads(raw)
+        planner, setting_name = key.split(".", 1)
+        settings.setdefault(planner, {})[setting_name] = json.loads(raw)
     result = run_compare(args.instrument, args.n, args.planners.split(","), list(range(args.seeds)), kind=args.kind,
                          settings=settings, energy_gap=args.energy_gap)
     path = write_summary(name, {"command": " ".join(["python", "benchmarks/bench.py", *sys.argv[1:]])} | result.to_dict())
