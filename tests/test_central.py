@@ -252,3 +252,42 @@ def test_a_solution_short_of_lines_is_not_converged(crossing: Scenario) -> None:
     assert cand.rounds == 1 and not cand.converged and cand.status == "Lazy_Rounds_Exhausted"
     more = solve_central(crossing, dataclasses.replace(settings, lazy_rounds=4))[0].candidates[0]
     assert more.converged and more.rounds > 1 and more.lines > cand.lines
+
+
+@pytest.mark.parametrize("name, mode", [("sdss", "time"), ("moons", "time"), ("desi", "energy")])
+def test_assembled_derivatives_equal_casadis_own(name: str, mode: str) -> None:
+    """The Jacobian and the Hessian of the Lagrangian IPOPT is given (the separation rows' written
+    out and summed into place) equal CasADi's differentiation of the whole NLP, at random points
+    and multipliers: capsules (SDSS), polygon zones with lateral offsets (MOONS' own model), the
+    energy mode (DESI)."""
+    import casadi as ca
+
+    from fiberplan.planners.central.nlp import _activate, _derivatives, _expressions, _make_problem
+    from fiberplan.planners.central.solve import _straight_guess
+    from fiberplan.studies.scenarios import hard_scenario
+
+    scenario = hard_scenario(name, 3, 0)
+    settings = make_settings("central", scenario, {"mode": mode, "steps": 8, "activate_mm": 5.0})
+    problem = _make_problem(scenario, settings)
+    q, _ = _straight_guess(problem, 1.2)
+    active = np.argwhere(_activate(problem, q, 0))
+    ex = _expressions(problem, active)
+    assert len(active) > 20 and len(ex.g_parts) == 4
+    given = _derivatives(ex)
+    z, g = ex.z, ca.vertcat(*ex.g_parts)
+    lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", g.shape[0])
+    own_hess = ca.Function("h", [z, lam_f, lam_g], [ca.triu(ca.hessian(lam_f * ex.objective + ca.dot(lam_g, g), z)[0])])
+    own_jac = ca.Function("j", [z], [g, ca.jacobian(g, z)])
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        x, lf, lg = rng.normal(size=z.shape[0]), rng.normal(), rng.normal(size=g.shape[0])
+        x[(problem.steps + 1) * problem.n * 2] = 1.0 + abs(x[0])  # tau > 0
+        h_given, h_own = (np.array(ca.densify(h)) for h in (given["hess_lag"](x, [], lf, lg), own_hess(x, lf, lg)))
+        np.testing.assert_allclose(h_given, h_own, rtol=1e-12, atol=1e-12 * np.abs(h_own).max())
+        g_given, j_given = given["jac_g"](x, [])
+        g_own, j_own = own_jac(x)
+        np.testing.assert_allclose(np.array(g_given), np.array(g_own), rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(np.array(ca.densify(j_given)), np.array(ca.densify(j_own)), rtol=1e-12, atol=1e-12)
+        _, grad_given = given["grad_f"](x, [])
+        grad_own = ca.Function("gf", [z], [ca.gradient(ex.objective, z)])(x)
+        np.testing.assert_allclose(np.array(grad_given).ravel(), np.array(grad_own).ravel(), rtol=1e-13)

@@ -277,6 +277,96 @@ def _make_problem(scenario: Scenario, settings: CentralSettings) -> _Problem:
     )
 
 
+@dataclass(frozen=True)
+class _Expressions:
+    """The NLP of one set of active lines, symbolic: the variables ``z`` (knots, ``tau``, three
+    per line), the objective, the constraint blocks ``g_parts`` with their bounds, and the
+    entries of the constraints' Jacobian and of the Lagrangian's Hessian (:func:`_derivatives`)."""
+
+    z: Any
+    objective: Any
+    g_parts: list[Any]
+    lbg: list[np.ndarray]
+    ubg: list[np.ndarray]
+    jac: _Derivative
+    hess: _Derivative
+
+
+def _expressions(problem: _Problem, active: np.ndarray) -> _Expressions:
+    r"""The NLP's expressions for the ``active`` lines (``(L, 3)`` rows ``k, pair, body pair``),
+    with their derivatives written out.
+
+    With ``S = \sum_m \Delta q_m^2`` over every joint and interval, ``h = \tau t_{LB} / T``, the
+    objective is ``\tau + C S / \tau`` (time mode; energy mode: ``C S / \tau`` at a fixed
+    ``\tau``), ``C = w_E T / (t_{LB} E_{ref})`` (energy mode: ``w_E`` = 1). Its Hessian:
+    ``2 C / \tau`` times the chain's Laplacian in the knots (2 on the diagonal, 1 at the two ends,
+    -1 between consecutive knots of a joint), ``-(C / \tau^2) dS/dq`` between ``q`` and ``\tau``,
+    ``2 C S / \tau^3`` on ``\tau``. The speed rows ``\Delta q \mp \omega h`` are linear; a
+    line's norm row ``n_x^2 + n_y^2`` has ``2 n_x``, ``2 n_y`` and ``2`` on its diagonal.
+    """
+    import casadi as ca
+
+    st = problem.settings
+    inst = problem.scenario.instrument
+    T, n = problem.steps, problem.n
+    n_q = (T + 1) * n * 2
+    n_lines = len(active)
+    z = ca.SX.sym("z", n_q + 1 + 3 * n_lines)
+    q = z[:n_q]
+    tau = z[n_q]
+    lines = z[n_q + 1 :]
+    lb = problem.lower_bound_s
+    h = tau * (lb / T)
+    jac, hess = _Derivative(), _Derivative()
+
+    kin = _point_kinematics(problem, q)
+
+    # Speed bounds and energy: dq over every interval.
+    m = T * n * 2
+    cur = np.arange(m)
+    nxt = cur + n * 2
+    dq = q[nxt] - q[cur]
+    omega = np.tile(inst.speeds_rad_s, T * n)
+    g_parts = [dq - ca.DM(omega) * h, dq + ca.DM(omega) * h]
+    lbg = [np.full(m, -np.inf), np.zeros(m)]
+    ubg = [np.zeros(m), np.full(m, np.inf)]
+    for block, sign in ((0, -1.0), (1, 1.0)):
+        rows = block * m + cur
+        jac.add(ca.DM.ones(m), rows, nxt)
+        jac.add(-ca.DM.ones(m), rows, cur)
+        jac.add(ca.DM(sign * omega * (lb / T)), rows, np.full(m, n_q))
+    energy = ca.sumsqr(dq) / h
+
+    if n_lines:
+        g_sep = _separation(problem, active, q, lines, kin, 2 * m, jac, hess)
+        norm_row = 2 * m + g_sep.shape[0] + np.arange(n_lines)
+        nx, ny = lines[0::3], lines[1::3]
+        g_parts += [g_sep, nx**2 + ny**2]
+        lbg += [np.zeros(g_sep.shape[0]), np.full(n_lines, -np.inf)]
+        ubg += [np.full(g_sep.shape[0], np.inf), np.ones(n_lines)]
+        first = n_q + 1 + 3 * np.arange(n_lines)
+        jac.add(2 * nx, norm_row, first)
+        jac.add(2 * ny, norm_row, first + 1)
+        for var in (first, first + 1):
+            hess.add(ca.DM(np.full(n_lines, 2.0)), var, var, norm_row)
+
+    e_ref = problem.energy_ref if problem.energy_ref > 0 else 1.0
+    if problem.tau_fixed is None:
+        objective = tau + st.energy_weight * energy / e_ref
+        c = st.energy_weight * T / (lb * e_ref)
+    else:
+        objective = energy / e_ref
+        c = T / (lb * e_ref)
+    ends = np.zeros((T + 1, n * 2))
+    ends[[0, -1]] = 1.0  # the first and last knots are in one interval, the others in two
+    hess.add((2 * c / tau) * ca.DM(2.0 - ends.ravel()), np.arange(n_q), np.arange(n_q))
+    hess.add(ca.DM.ones(m) * (-2 * c / tau), cur, nxt)
+    zeros = ca.SX.zeros(n * 2)
+    hess.add((-2 * c / tau**2) * (ca.vertcat(zeros, dq) - ca.vertcat(dq, zeros)), np.arange(n_q), np.full(n_q, n_q))
+    hess.add(2 * c * ca.sumsqr(dq) / tau**3, [n_q], [n_q])
+    return _Expressions(z, objective, g_parts, lbg, ubg, jac, hess)
+
+
 def _solve_nlp(problem: _Problem, active: np.ndarray, guesses: list[tuple[np.ndarray, float]]) -> tuple[dict[str, Any], float]:
     """Build the NLP for the ``active`` lines (``(L, 3)`` rows ``k, pair, body pair``) once and solve it
     from each guess ``(q, tau)`` in turn until IPOPT succeeds.
@@ -292,59 +382,7 @@ def _solve_nlp(problem: _Problem, active: np.ndarray, guesses: list[tuple[np.nda
     T, n = problem.steps, problem.n
     n_q = (T + 1) * n * 2
     n_lines = len(active)
-    z = ca.SX.sym("z", n_q + 1 + 3 * n_lines)
-    q = z[:n_q]
-    tau = z[n_q]
-    lines = z[n_q + 1 :]
-    lb = problem.lower_bound_s
-    h = tau * (lb / T)
-
-    # Joint angles, flattened (k, i, joint): alpha at even, beta at odd positions.
-    alpha = q[0::2]
-    beta = q[1::2]
-    orient = ca.DM(np.tile(sc.orient, T + 1))
-    bx = ca.DM(np.tile(sc.base_xy[:, 0], T + 1))
-    by = ca.DM(np.tile(sc.base_xy[:, 1], T + 1))
-    a = alpha + orient
-    ab = a + beta
-    ca_, sa_ = ca.cos(a), ca.sin(a)
-    cab, sab = ca.cos(ab), ca.sin(ab)
-    ex, ey = bx + inst.alpha_arm_mm * ca_, by + inst.alpha_arm_mm * sa_
-    pts = problem.points
-    px_list, py_list = [], []
-    for p in range(len(pts.arm)):
-        x, y = pts.dist[p], pts.lateral[p]
-        if pts.arm[p] == 1:
-            px_list.append(ex + x * cab - y * sab)
-            py_list.append(ey + x * sab + y * cab)
-        else:
-            px_list.append(bx + x * ca_ - y * sa_)
-            py_list.append(by + x * sa_ + y * ca_)
-    px_all = ca.vertcat(*px_list)
-    py_all = ca.vertcat(*py_list)
-
-    # Speed bounds and energy: dq over every interval.
-    cur = np.arange(T * n * 2)
-    nxt = cur + n * 2
-    dq = q[nxt] - q[cur]
-    omega = ca.DM(np.tile(inst.speeds_rad_s, T * n))
-    g_parts = [dq - omega * h, dq + omega * h]
-    lbg = [np.full(T * n * 2, -np.inf), np.zeros(T * n * 2)]
-    ubg = [np.zeros(T * n * 2), np.full(T * n * 2, np.inf)]
-    energy = ca.sumsqr(dq) / h
-
-    if n_lines:
-        g_sep, norms = _separation(problem, active, q, lines, px_all, py_all)
-        g_parts += [g_sep, norms]
-        lbg += [np.zeros(g_sep.shape[0]), np.full(n_lines, -np.inf)]
-        ubg += [np.full(g_sep.shape[0], np.inf), np.ones(n_lines)]
-
-    e_ref = problem.energy_ref if problem.energy_ref > 0 else 1.0
-    if problem.tau_fixed is None:
-        objective = tau + st.energy_weight * energy / e_ref
-    else:
-        objective = energy / e_ref
-    g = ca.vertcat(*g_parts)
+    ex = _expressions(problem, active)
 
     # Bounds: hard stops, fixed start and target, tau, unit-ball normals.
     lim = inst.limits_rad
@@ -376,7 +414,9 @@ def _solve_nlp(problem: _Problem, active: np.ndarray, guesses: list[tuple[np.nda
             "bound_relax_factor": 0.0,
         },
     }
-    solver = ca.nlpsol("central", "ipopt", {"x": z, "f": objective, "g": g}, opts)
+    # The derivatives IPOPT needs, assembled here (:func:`_derivatives`).
+    opts |= _derivatives(ex)
+    solver = ca.nlpsol("central", "ipopt", {"x": ex.z, "f": ex.objective, "g": ca.vertcat(*ex.g_parts)}, opts)
     build_s = time.perf_counter() - t_build
     raw: dict[str, Any] = {"iterations": 0, "solve_s": 0.0}
     for guess_q, guess_tau in guesses:
@@ -386,7 +426,7 @@ def _solve_nlp(problem: _Problem, active: np.ndarray, guesses: list[tuple[np.nda
         x0 = np.concatenate([x0_q.ravel(), [x0_tau], _initial_lines(problem, active, x0_q).ravel()])
         t0 = time.perf_counter()
         build_s += t0 - t_start
-        sol = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=np.concatenate(lbg), ubg=np.concatenate(ubg))
+        sol = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=np.concatenate(ex.lbg), ubg=np.concatenate(ex.ubg))
         solver_stats = solver.stats()
         x = np.array(sol["x"]).ravel()
         raw |= {
@@ -402,14 +442,87 @@ def _solve_nlp(problem: _Problem, active: np.ndarray, guesses: list[tuple[np.nda
     return raw, build_s
 
 
-def _separation(problem: _Problem, active: np.ndarray, q: Any, lines: Any, px_all: Any, py_all: Any) -> tuple[Any, Any]:
+def _point_kinematics(problem: _Problem, q: Any) -> dict[str, Any]:
+    r"""Every capsule end point at every knot, stacked ``(point, k, i)``: its position ``x``,
+    ``y`` and their derivatives in the positioner's joints (``x_a`` = dx/dalpha, ``y_ab`` =
+    d2y/dalpha dbeta, ...; zero in beta for a point on the alpha arm), for the separation rows
+    and their derivatives (:func:`_separation`).
+
+    With ``(u, w)`` the point's offset from its arm's joint (``d u(theta) + l u_perp(theta)``,
+    ``theta`` = ``alpha + orient`` (+ ``beta`` on the beta arm)), ``d/dtheta (u, w) = (-w, u)``;
+    on the beta arm the elbow ``l_1 u(alpha + orient)`` adds its own terms in alpha.
+    """
+    import casadi as ca
+
+    sc, inst, pts = problem.scenario, problem.scenario.instrument, problem.points
+    T = problem.steps
+    # Joint angles, flattened (k, i, joint): alpha at even, beta at odd positions.
+    alpha = q[0::2]
+    beta = q[1::2]
+    orient = ca.DM(np.tile(sc.orient, T + 1))
+    bx = ca.DM(np.tile(sc.base_xy[:, 0], T + 1))
+    by = ca.DM(np.tile(sc.base_xy[:, 1], T + 1))
+    a = alpha + orient
+    ab = a + beta
+    ca_, sa_ = ca.cos(a), ca.sin(a)
+    cab, sab = ca.cos(ab), ca.sin(ab)
+    lc, ls = inst.alpha_arm_mm * ca_, inst.alpha_arm_mm * sa_
+    ex, ey = bx + lc, by + ls
+    zero = ca.SX.zeros(alpha.shape[0])
+    keys = ("x", "y", "x_a", "y_a", "x_b", "y_b", "x_aa", "y_aa", "x_ab", "y_ab", "x_bb", "y_bb")
+    stacks: dict[str, list[Any]] = {key: [] for key in keys}
+    for p in range(len(pts.arm)):
+        x, y = pts.dist[p], pts.lateral[p]
+        if pts.arm[p] == 1:
+            u, w = x * cab - y * sab, x * sab + y * cab
+            parts = (ex + x * cab - y * sab, ey + x * sab + y * cab, -ls - w, lc + u, -w, u, -lc - u, -ls - w, -u, -w, -u, -w)
+        else:
+            u, w = x * ca_ - y * sa_, x * sa_ + y * ca_
+            parts = (bx + x * ca_ - y * sa_, by + x * sa_ + y * ca_, -w, u, zero, zero, -u, -w, zero, zero, zero, zero)
+        for key, part in zip(keys, parts, strict=True):
+            stacks[key].append(part)
+    return {key: ca.vertcat(*parts) for key, parts in stacks.items()}
+
+
+@dataclass
+class _Derivative:
+    """Sparse entries of a derivative as parallel lists: values (CasADi column vectors or
+    constants), rows and columns (index arrays); for the Hessian of the Lagrangian, ``rows`` and
+    ``cols`` are the two variables (each unordered pair once) and ``weights`` the multiplier of
+    each entry (its row of ``g``, or -1 for the objective's)."""
+
+    values: list[Any] = field(default_factory=list)
+    rows: list[np.ndarray] = field(default_factory=list)
+    cols: list[np.ndarray] = field(default_factory=list)
+    weights: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, value: Any, row: np.ndarray, col: np.ndarray, weight: np.ndarray | None = None) -> None:
+        self.values.append(value)
+        self.rows.append(np.asarray(row, dtype=np.int64))
+        self.cols.append(np.asarray(col, dtype=np.int64))
+        self.weights.append(np.full(len(self.rows[-1]), -1, dtype=np.int64) if weight is None else np.asarray(weight, dtype=np.int64))
+
+
+def _separation(problem: _Problem, active: np.ndarray, q: Any, lines: Any, kin: dict[str, Any], first_row: int, jac: _Derivative,
+                hess: _Derivative) -> Any:
     """The separating-line constraints of the ``active`` lines (each capsule end point of both
     sides at both knots of the interval, on its side of the line by its radius, half the margin and
-    the chord allowance) and the squared norms of the lines' normals (at most 1)."""
+    the chord allowance), rows ``first_row`` on of ``g``; their derivatives are added to ``jac``
+    and ``hess``.
+
+    Row ``r``: ``g = s (n_x (x_p - m_x) + n_y (y_p - m_y) - c) - const - c_a (alpha_1 - alpha_0)^2
+    - c_b (beta_1 - beta_0)^2`` with ``x_p`` the point at its knot (joints ``alpha_p, beta_p``, one
+    of the interval's two knots). Its nonzero first derivatives: ``s (x_p - m_x)``, ``s (y_p -
+    m_y)``, ``-s`` in the line's variables, ``s (n_x x_a + n_y y_a)`` (and in beta) in the
+    point's joints, ``+-2 c_a (alpha_1 - alpha_0)`` (and beta) in the interval's; second:
+    ``s x_a`` for (n_x, alpha_p) and the like, ``s (n_x x_aa + n_y y_aa)`` for (alpha_p, alpha_p)
+    and the like, ``-+2 c_a`` for the interval's alphas (and betas).
+    """
     import casadi as ca
 
     sc, st, pts = problem.scenario, problem.settings, problem.points
     n = problem.n
+    n_q = (problem.steps + 1) * n * 2
     stride = (problem.steps + 1) * n  # points are stacked (point, k, i)
     nx, ny, cc = lines[0::3], lines[1::3], lines[2::3]
     k_l, p_l, c_l = active[:, 0], active[:, 1], active[:, 2]
@@ -437,14 +550,101 @@ def _separation(problem: _Problem, active: np.ndarray, q: Any, lines: Any, px_al
     r_move = np.concatenate(rows_move)
     d_alpha = q[r_move + 2 * n] - q[r_move]
     d_beta = q[r_move + 2 * n + 1] - q[r_move + 1]
-    chord = ca.DM(pts.chord_alpha[r_pid] * relief) * d_alpha**2 + ca.DM(pts.chord_beta[r_pid] * relief) * d_beta**2
-    signed = (
-        nx[r_line] * (px_all[r_point] - ca.DM(mid[r_line, 0]))
-        + ny[r_line] * (py_all[r_point] - ca.DM(mid[r_line, 1]))
-        - cc[r_line]
-    )
-    g_sep = ca.DM(r_sign) * signed - ca.DM(const) - chord
-    return g_sep, nx**2 + ny**2
+    c_a, c_b = ca.DM(pts.chord_alpha[r_pid] * relief), ca.DM(pts.chord_beta[r_pid] * relief)
+    chord = c_a * d_alpha**2 + c_b * d_beta**2
+    at = r_point.tolist()
+    px, py = kin["x"][at], kin["y"][at]
+    nx_r, ny_r = nx[r_line.tolist()], ny[r_line.tolist()]
+    dx, dy = px - ca.DM(mid[r_line, 0]), py - ca.DM(mid[r_line, 1])
+    signed = nx_r * dx + ny_r * dy - cc[r_line.tolist()]
+    sign = ca.DM(r_sign)
+    g_sep = sign * signed - ca.DM(const) - chord
+
+    # The variables of each row in z, and its derivatives.
+    row = np.arange(len(r_line))
+    line_var = n_q + 1 + 3 * r_line
+    knot = r_point % stride  # (k + dk) * n + positioner: the point's joints are z[2 knot], z[2 knot + 1]
+    var = {"nx": line_var, "ny": line_var + 1, "c": line_var + 2, "ap": 2 * knot, "bp": 2 * knot + 1,
+           "a0": r_move, "b0": r_move + 1, "a1": r_move + 2 * n, "b1": r_move + 2 * n + 1}
+    on_beta = np.flatnonzero(pts.arm[r_pid] == 1)
+    d = {key: kin[key][at] for key in ("x_a", "y_a", "x_b", "y_b", "x_aa", "y_aa", "x_ab", "y_ab", "x_bb", "y_bb")}
+
+    def entry(value: Any, first: str | None, second: str, beta_only: bool = False) -> None:
+        """A Jacobian entry (``first`` None) or a Hessian entry of every row (of the rows whose
+        point is on the beta arm)."""
+        pick = on_beta if beta_only else row
+        value = value[pick.tolist()] if beta_only else value
+        if first is None:
+            jac.add(value, first_row + pick, var[second][pick])
+        else:
+            hess.add(value, var[first][pick], var[second][pick], first_row + pick)
+
+    entry(sign * dx, None, "nx")
+    entry(sign * dy, None, "ny")
+    entry(-sign, None, "c")
+    entry(sign * (nx_r * d["x_a"] + ny_r * d["y_a"]), None, "ap")
+    entry(sign * (nx_r * d["x_b"] + ny_r * d["y_b"]), None, "bp", beta_only=True)
+    entry(2 * c_a * d_alpha, None, "a0")
+    entry(-2 * c_a * d_alpha, None, "a1")
+    entry(2 * c_b * d_beta, None, "b0")
+    entry(-2 * c_b * d_beta, None, "b1")
+    entry(sign * d["x_a"], "nx", "ap")
+    entry(sign * d["y_a"], "ny", "ap")
+    entry(sign * d["x_b"], "nx", "bp", beta_only=True)
+    entry(sign * d["y_b"], "ny", "bp", beta_only=True)
+    entry(sign * (nx_r * d["x_aa"] + ny_r * d["y_aa"]), "ap", "ap")
+    entry(sign * (nx_r * d["x_ab"] + ny_r * d["y_ab"]), "ap", "bp", beta_only=True)
+    entry(sign * (nx_r * d["x_bb"] + ny_r * d["y_bb"]), "bp", "bp", beta_only=True)
+    entry(-2 * c_a, "a0", "a0")
+    entry(-2 * c_a, "a1", "a1")
+    entry(2 * c_a, "a0", "a1")
+    entry(-2 * c_b, "b0", "b0")
+    entry(-2 * c_b, "b1", "b1")
+    entry(2 * c_b, "b0", "b1")
+    return g_sep
+
+
+def _derivatives(ex: _Expressions) -> dict[str, Any]:
+    """IPOPT's derivative functions (``grad_f``, ``jac_g``, ``hess_lag``: the Hessian of
+    ``lam_f f + lam_g' g``, upper triangle) of the NLP ``ex``, and the nlpsol options that use
+    them.
+
+    CasADi's own differentiation of the whole problem colours the Hessian (each line's variables
+    meet the joints of two positioners at two knots: over a hundred colours) and sweeps the whole
+    expression graph once per colour; with the Jacobian and a gradient of the Lagrangian for
+    multipliers fiberplan does not read (``no_nlp_grad``), that was most of the set-up of each NLP
+    (0.2-0.4 s on SDSS 7). Here the entries are written out (:func:`_expressions`,
+    :func:`_separation`) and summed into place by one sparse product each; only the objective's
+    gradient is CasADi's.
+    """
+    import casadi as ca
+
+    z, objective, g = ex.z, ex.objective, ca.vertcat(*ex.g_parts)
+    n_z, n_g = z.shape[0], g.shape[0]
+    lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", n_g)
+    jac = _scatter(ca.vertcat(*ex.jac.values), np.concatenate(ex.jac.rows), np.concatenate(ex.jac.cols), (n_g, n_z))
+    a, b = np.concatenate(ex.hess.rows), np.concatenate(ex.hess.cols)
+    weights = ca.vertcat(lam_f, lam_g)[(np.concatenate(ex.hess.weights) + 1).tolist()]
+    hess = _scatter(ca.vertcat(*ex.hess.values) * weights, np.minimum(a, b), np.maximum(a, b), (n_z, n_z))
+    no_p = ca.SX.sym("p", 0)
+    return {
+        "grad_f": ca.Function("nlp_grad_f", [z, no_p], [objective, ca.gradient(objective, z)]),
+        "jac_g": ca.Function("nlp_jac_g", [z, no_p], [g, jac]),
+        "hess_lag": ca.Function("nlp_hess_l", [z, no_p, lam_f, lam_g], [hess]),
+        "no_nlp_grad": True,
+        "calc_lam_p": False,
+    }
+
+
+def _scatter(values: Any, row: np.ndarray, col: np.ndarray, shape: tuple[int, int]) -> Any:
+    """The sparse matrix of ``shape`` whose entry ``(row[e], col[e])`` is the sum of the
+    ``values[e]`` that land on it (one constant sparse product)."""
+    import casadi as ca
+
+    keys, slot = np.unique(col * shape[0] + row, return_inverse=True)  # CasADi's order: by column, then row
+    gather = ca.DM(ca.Sparsity.triplet(len(keys), len(row), slot.tolist(), list(range(len(row)))), 1.0)
+    pattern = ca.Sparsity.triplet(shape[0], shape[1], (keys % shape[0]).tolist(), (keys // shape[0]).tolist())
+    return ca.SX(pattern, ca.mtimes(gather, values))
 
 
 def _end_relief(problem: _Problem, active: np.ndarray) -> np.ndarray:
