@@ -290,6 +290,16 @@ class _Expressions:
     ubg: list[np.ndarray]
     jac: _Derivative
     hess: _Derivative
+    row_keys: np.ndarray  # (n_g,) what each row of g is, the same key in every NLP of a scenario (:func:`_line_codes`)
+    var_keys: np.ndarray  # (n_z,) what each variable is, likewise
+
+
+def _line_codes(problem: _Problem, active: np.ndarray) -> np.ndarray:
+    """``(L,)`` one integer per line (interval, pair, body pair), the same in every NLP of the problem."""
+    return (active[:, 0] * len(problem.scenario.pairs) + active[:, 1]) * len(problem.combos) + active[:, 2]
+
+
+_KIND = 1 << 56  # keys of rows and variables: kind * _KIND + code (speed rows and knots 0, separation 1, norm 2)
 
 
 def _expressions(problem: _Problem, active: np.ndarray) -> _Expressions:
@@ -337,8 +347,12 @@ def _expressions(problem: _Problem, active: np.ndarray) -> _Expressions:
         jac.add(ca.DM(sign * omega * (lb / T)), rows, np.full(m, n_q))
     energy = ca.sumsqr(dq) / h
 
+    codes = _line_codes(problem, active)
+    row_keys = [np.arange(2 * m)]
+    var_keys = [np.arange(n_q + 1), _KIND + (3 * codes[:, None] + np.arange(3)).ravel()]
     if n_lines:
-        g_sep = _separation(problem, active, q, lines, kin, 2 * m, jac, hess)
+        g_sep, sep_keys = _separation(problem, active, q, lines, kin, 2 * m, jac, hess)
+        row_keys += [_KIND + sep_keys, 2 * _KIND + codes]
         norm_row = 2 * m + g_sep.shape[0] + np.arange(n_lines)
         nx, ny = lines[0::3], lines[1::3]
         g_parts += [g_sep, nx**2 + ny**2]
@@ -364,15 +378,22 @@ def _expressions(problem: _Problem, active: np.ndarray) -> _Expressions:
     zeros = ca.SX.zeros(n * 2)
     hess.add((-2 * c / tau**2) * (ca.vertcat(zeros, dq) - ca.vertcat(dq, zeros)), np.arange(n_q), np.full(n_q, n_q))
     hess.add(2 * c * ca.sumsqr(dq) / tau**3, [n_q], [n_q])
-    return _Expressions(z, objective, g_parts, lbg, ubg, jac, hess)
+    return _Expressions(z, objective, g_parts, lbg, ubg, jac, hess, np.concatenate(row_keys), np.concatenate(var_keys))
 
 
-def _solve_nlp(problem: _Problem, active: np.ndarray, guesses: list[tuple[np.ndarray, float]]) -> tuple[dict[str, Any], float]:
+def _solve_nlp(
+    problem: _Problem, active: np.ndarray, guesses: list[tuple[np.ndarray, float]], warm: dict[str, np.ndarray] | None = None,
+) -> tuple[dict[str, Any], float]:
     """Build the NLP for the ``active`` lines (``(L, 3)`` rows ``k, pair, body pair``) once and solve it
     from each guess ``(q, tau)`` in turn until IPOPT succeeds.
 
+    With ``warm`` (a previous solve's ``raw["warm"]``: its variables and multipliers, keyed), the
+    first guess is solved from that solution and its multipliers, the rows and lines it did not
+    have starting at zero multipliers (IPOPT's warm start: a lazy round's NLP is the last one
+    with a few lines more); the other guesses cold.
+
     Returns the raw solution dictionary of the last solve (``q``, ``tau``, ``status``,
-    ``objective``; ``iterations`` and ``solve_s`` summed over the solves) and the build time.
+    ``objective``; ``iterations`` and ``solve_s`` summed over the solves; ``warm``) and the build time.
     """
     import casadi as ca
 
@@ -416,20 +437,42 @@ def _solve_nlp(problem: _Problem, active: np.ndarray, guesses: list[tuple[np.nda
     }
     # The derivatives IPOPT needs, assembled here (:func:`_derivatives`).
     opts |= _derivatives(ex)
-    solver = ca.nlpsol("central", "ipopt", {"x": ex.z, "f": ex.objective, "g": ca.vertcat(*ex.g_parts)}, opts)
+    nlp = {"x": ex.z, "f": ex.objective, "g": ca.vertcat(*ex.g_parts)}
+    solvers: dict[bool, Any] = {}
+
+    def solver_for(warm_start: bool) -> Any:
+        if warm_start not in solvers:
+            ipopt = opts["ipopt"] | (_WARM_IPOPT if warm_start else {})
+            solvers[warm_start] = ca.nlpsol("central", "ipopt", nlp, opts | {"ipopt": ipopt})
+        return solvers[warm_start]
+
+    solver_for(warm is not None)
     build_s = time.perf_counter() - t_build
     raw: dict[str, Any] = {"iterations": 0, "solve_s": 0.0}
-    for guess_q, guess_tau in guesses:
+    for g_idx, (guess_q, guess_tau) in enumerate(guesses):
         t_start = time.perf_counter()  # the start point (lines from the guess) is set-up too
         x0_q = np.clip(guess_q, lo_q, hi_q)
         x0_tau = float(np.clip(guess_tau, tau_lo, tau_hi))
         x0 = np.concatenate([x0_q.ravel(), [x0_tau], _initial_lines(problem, active, x0_q).ravel()])
+        start: dict[str, Any] = {"x0": x0}
+        warm_start = warm is not None and g_idx == 0
+        if warm_start:
+            assert warm is not None
+            had, x_old = _carried(warm["var_keys"], warm["x"], ex.var_keys)
+            start = {
+                "x0": np.where(had, np.clip(x_old, lbx, ubx), x0),
+                "lam_x0": _carried(warm["var_keys"], warm["lam_x"], ex.var_keys)[1],
+                "lam_g0": _carried(warm["row_keys"], warm["lam_g"], ex.row_keys)[1],
+            }
+        solver = solver_for(warm_start)
         t0 = time.perf_counter()
         build_s += t0 - t_start
-        sol = solver(x0=x0, lbx=lbx, ubx=ubx, lbg=np.concatenate(ex.lbg), ubg=np.concatenate(ex.ubg))
+        sol = solver(**start, lbx=lbx, ubx=ubx, lbg=np.concatenate(ex.lbg), ubg=np.concatenate(ex.ubg))
         solver_stats = solver.stats()
         x = np.array(sol["x"]).ravel()
         raw |= {
+            "warm": {"x": x, "lam_x": np.array(sol["lam_x"]).ravel(), "lam_g": np.array(sol["lam_g"]).ravel(),
+                     "var_keys": ex.var_keys, "row_keys": ex.row_keys},
             "q": x[:n_q].reshape(T + 1, n, 2),
             "tau": float(x[n_q]),
             "status": str(solver_stats.get("return_status", "unknown")),
@@ -503,12 +546,28 @@ class _Derivative:
         self.weights.append(np.full(len(self.rows[-1]), -1, dtype=np.int64) if weight is None else np.asarray(weight, dtype=np.int64))
 
 
+_WARM_IPOPT = {"warm_start_init_point": "yes", "mu_init": 1e-4, "warm_start_bound_push": 1e-6, "warm_start_mult_bound_push": 1e-6}
+"""IPOPT options for a lazy round started from the last round's solution and multipliers."""
+
+
+def _carried(old_keys: np.ndarray, old_values: np.ndarray, new_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Values of a previous NLP's rows or variables carried to a new one by key: ``(found, values)``,
+    zero where the new NLP has a key the old one did not."""
+    order = np.argsort(old_keys, kind="stable")
+    sorted_keys = old_keys[order]
+    pos = np.clip(np.searchsorted(sorted_keys, new_keys), 0, max(len(sorted_keys) - 1, 0))
+    found = sorted_keys[pos] == new_keys if len(sorted_keys) else np.zeros(len(new_keys), dtype=bool)
+    values = np.zeros(len(new_keys))
+    values[found] = old_values[order][pos[found]]
+    return found, values
+
+
 def _separation(problem: _Problem, active: np.ndarray, q: Any, lines: Any, kin: dict[str, Any], first_row: int, jac: _Derivative,
-                hess: _Derivative) -> Any:
+                hess: _Derivative) -> tuple[Any, np.ndarray]:
     """The separating-line constraints of the ``active`` lines (each capsule end point of both
     sides at both knots of the interval, on its side of the line by its radius, half the margin and
-    the chord allowance), rows ``first_row`` on of ``g``; their derivatives are added to ``jac``
-    and ``hess``.
+    the chord allowance), rows ``first_row`` on of ``g``, and a key per row (its line, side,
+    point and knot); their derivatives are added to ``jac`` and ``hess``.
 
     Row ``r``: ``g = s (n_x (x_p - m_x) + n_y (y_p - m_y) - c) - const - c_a (alpha_1 - alpha_0)^2
     - c_b (beta_1 - beta_0)^2`` with ``x_p`` the point at its knot (joints ``alpha_p, beta_p``, one
@@ -601,7 +660,10 @@ def _separation(problem: _Problem, active: np.ndarray, q: Any, lines: Any, kin: 
     entry(-2 * c_b, "b0", "b0")
     entry(-2 * c_b, "b1", "b1")
     entry(2 * c_b, "b0", "b1")
-    return g_sep
+    dk = knot // n - k_l[r_line]
+    side = (r_sign < 0).astype(np.int64)
+    keys = ((_line_codes(problem, active)[r_line] * 2 + side) * len(pts.arm) + r_pid) * 2 + dk
+    return g_sep, keys
 
 
 def _derivatives(ex: _Expressions) -> dict[str, Any]:
@@ -756,7 +818,7 @@ def _solve_candidate(problem: _Problem, source: str, guess_q: np.ndarray, guess_
         # candidate's warm start (a planner's verified trajectory is apart everywhere) before
         # the candidate is given up.
         guesses = [(q, tau)] if rounds == 0 else [(q, tau), (guess_q, guess_tau)]
-        raw, b_s = _solve_nlp(problem, active, guesses)
+        raw, b_s = _solve_nlp(problem, active, guesses, raw.get("warm") if rounds and st.warm_rounds else None)
         rounds += 1
         iterations += raw["iterations"]
         solve_s += raw["solve_s"]

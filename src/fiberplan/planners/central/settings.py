@@ -52,6 +52,8 @@ class CentralSettings:
     activation_window: int = setting(2, "the initial activation also covers this many intervals around each close approach", low=0,
                                      high=1000, group="problem")
     lazy_rounds: int = setting(4, "re-solves allowed after adding the lines a solution made necessary", low=0, high=100, group="solver")
+    warm_rounds: bool = setting(True, "a lazy round starts IPOPT from the last round's solution and multipliers (warm start)",
+                                group="solver")
     max_iter: int = setting(1500, "IPOPT iteration limit per solve", low=2, high=1_000_000, group="solver")
     tol: float = setting(1e-7, "IPOPT convergence tolerance", low=0.0, high=1.0, low_open=True, group="solver")
     max_wall_s: float = setting(120.0, "IPOPT wall-time limit per solve", unit="s", low=0.0, high=1e6, low_open=True, group="solver")
