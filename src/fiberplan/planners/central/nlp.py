@@ -388,12 +388,13 @@ def _solve_nlp(
     from each guess ``(q, tau)`` in turn until IPOPT succeeds.
 
     With ``warm`` (a previous solve's ``raw["warm"]``: its variables and multipliers, keyed), the
-    first guess is solved from that solution and its multipliers, the rows and lines it did not
-    have starting at zero multipliers (IPOPT's warm start: a lazy round's NLP is the last one
-    with a few lines more); the other guesses cold.
+    first guess is solved first from that solution and its multipliers, the rows and lines it did
+    not have starting at zero multipliers (IPOPT's warm start: a lazy round's NLP is the last one
+    with a few lines more; :data:`_WARM_IPOPT`), and, if that fails, cold; the other guesses cold.
 
     Returns the raw solution dictionary of the last solve (``q``, ``tau``, ``status``,
-    ``objective``; ``iterations`` and ``solve_s`` summed over the solves; ``warm``) and the build time.
+    ``objective``; ``iterations`` and ``solve_s`` summed over the solves; ``warm``; ``attempts``:
+    per solve, warm or not, status, iterations, seconds) and the build time.
     """
     import casadi as ca
 
@@ -442,20 +443,21 @@ def _solve_nlp(
 
     def solver_for(warm_start: bool) -> Any:
         if warm_start not in solvers:
-            ipopt = opts["ipopt"] | (_WARM_IPOPT if warm_start else {})
+            ipopt = opts["ipopt"] | ({**_WARM_IPOPT, "max_iter": min(_WARM_IPOPT["max_iter"], int(st.max_iter))} if warm_start else {})
             solvers[warm_start] = ca.nlpsol("central", "ipopt", nlp, opts | {"ipopt": ipopt})
         return solvers[warm_start]
 
     solver_for(warm is not None)
     build_s = time.perf_counter() - t_build
-    raw: dict[str, Any] = {"iterations": 0, "solve_s": 0.0}
-    for g_idx, (guess_q, guess_tau) in enumerate(guesses):
+    raw: dict[str, Any] = {"iterations": 0, "solve_s": 0.0, "attempts": []}
+    tries = ([(0, True)] if warm is not None else []) + [(g, False) for g in range(len(guesses))]  # (guess, warm)
+    for g_idx, warm_start in tries if guesses else []:
+        guess_q, guess_tau = guesses[g_idx]
         t_start = time.perf_counter()  # the start point (lines from the guess) is set-up too
         x0_q = np.clip(guess_q, lo_q, hi_q)
         x0_tau = float(np.clip(guess_tau, tau_lo, tau_hi))
         x0 = np.concatenate([x0_q.ravel(), [x0_tau], _initial_lines(problem, active, x0_q).ravel()])
         start: dict[str, Any] = {"x0": x0}
-        warm_start = warm is not None and g_idx == 0
         if warm_start:
             assert warm is not None
             had, x_old = _carried(warm["var_keys"], warm["x"], ex.var_keys)
@@ -480,6 +482,7 @@ def _solve_nlp(
             "objective": float(sol["f"]),
             "solve_s": raw["solve_s"] + time.perf_counter() - t0,
         }
+        raw["attempts"].append((warm_start, raw["status"], int(solver_stats.get("iter_count", 0)), time.perf_counter() - t0))
         if raw["status"] in _IPOPT_SUCCESS:
             break
     return raw, build_s
@@ -546,8 +549,13 @@ class _Derivative:
         self.weights.append(np.full(len(self.rows[-1]), -1, dtype=np.int64) if weight is None else np.asarray(weight, dtype=np.int64))
 
 
-_WARM_IPOPT = {"warm_start_init_point": "yes", "mu_init": 1e-4, "warm_start_bound_push": 1e-6, "warm_start_mult_bound_push": 1e-6}
-"""IPOPT options for a lazy round started from the last round's solution and multipliers."""
+_WARM_IPOPT = {"warm_start_init_point": "yes", "mu_init": 1e-4, "warm_start_bound_push": 1e-6, "warm_start_mult_bound_push": 1e-6,
+               "max_iter": 150}
+"""IPOPT options for a lazy round started from the last round's solution and multipliers. A warm
+start that has not converged in 150 iterations is given up for the cold solves: where a round
+added many lines (MOONS 7 seed 0: 885 lines more, many of them violated at the start), the warm
+solve ran into the wall-time limit (300 s) where the cold one took 110 s; where it helps, it
+converges in 10-90 iterations (SDSS 7, MOONS 7 and 19)."""
 
 
 def _carried(old_keys: np.ndarray, old_values: np.ndarray, new_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
