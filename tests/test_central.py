@@ -312,3 +312,5 @@ def test_lazy_rounds_start_warm_from_the_last_round(crossing: Scenario) -> None:
         assert verify(crossing, central_reference(crossing, {**base, "warm_rounds": warm}).trajectory).ok
         runs[warm] = cand
     assert runs[True].iterations < runs[False].iterations
+    assert [a[:2] for a in runs[True].attempts][:2] == [(0, False), (1, True)]  # round 0 cold, round 1 warm
+    assert not any(warm for _, warm, *_ in runs[False].attempts)

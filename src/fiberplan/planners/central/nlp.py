@@ -33,6 +33,7 @@ class Candidate:
         build_s: wall time spent building the NLPs (s), summed.
         rounds: solves done (1 + lazy re-solves).
         lines: separating lines in the last NLP.
+        attempts: every IPOPT solve, round by round: ``(round, warm, status, iterations, seconds)``.
     """
 
     source: str
@@ -46,6 +47,7 @@ class Candidate:
     build_s: float
     rounds: int
     lines: int
+    attempts: list[tuple[int, bool, str, int, float]] = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready statistics (no arrays)."""
@@ -60,6 +62,7 @@ class Candidate:
             "build_s": self.build_s,
             "rounds": self.rounds,
             "lines": self.lines,
+            "attempts": [list(a) for a in self.attempts],
         }
 
 
@@ -817,6 +820,7 @@ def _solve_candidate(problem: _Problem, source: str, guess_q: np.ndarray, guess_
     st = problem.settings
     mask = _activate(problem, guess_q, st.activation_window)
     iterations, solve_s, build_s, rounds = 0, 0.0, 0.0, 0
+    attempts: list[tuple[int, bool, str, int, float]] = []
     q, tau = guess_q, guess_tau
     raw: dict[str, Any] = {}
     for _ in range(st.lazy_rounds + 1):
@@ -827,6 +831,7 @@ def _solve_candidate(problem: _Problem, source: str, guess_q: np.ndarray, guess_
         # the candidate is given up.
         guesses = [(q, tau)] if rounds == 0 else [(q, tau), (guess_q, guess_tau)]
         raw, b_s = _solve_nlp(problem, active, guesses, raw.get("warm") if rounds and st.warm_rounds else None)
+        attempts += [(rounds, *attempt) for attempt in raw["attempts"]]
         rounds += 1
         iterations += raw["iterations"]
         solve_s += raw["solve_s"]
@@ -859,6 +864,7 @@ def _solve_candidate(problem: _Problem, source: str, guess_q: np.ndarray, guess_
         build_s=build_s,
         rounds=rounds,
         lines=int(mask.sum()),
+        attempts=attempts,
     )
 
 
