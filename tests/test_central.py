@@ -293,16 +293,21 @@ def test_assembled_derivatives_equal_casadis_own(name: str, mode: str) -> None:
         np.testing.assert_allclose(np.array(grad_given).ravel(), np.array(grad_own).ravel(), rtol=1e-13)
 
 
-def test_lazy_rounds_start_warm_from_the_last_round(crossing: Scenario) -> None:
+def test_lazy_rounds_start_warm_from_the_last_round(crossing: Scenario, monkeypatch: pytest.MonkeyPatch) -> None:
     """A lazy round's NLP is the last one with a few lines more: its rows and variables keep
     their keys, so IPOPT starts from the last solution and its multipliers (new rows at zero).
-    Both ways converge and verify; the warm rounds take fewer iterations."""
+    Both ways converge and verify; the warm rounds take fewer iterations. A round that adds more
+    than ``_WARM_MAX_NEW`` of the lines starts cold (here the second round adds more)."""
+    from fiberplan.planners.central import nlp
     from fiberplan.planners.central.nlp import _carried
 
     found, values = _carried(np.array([5, 1, 9]), np.array([50.0, 10.0, 90.0]), np.array([9, 2, 1, 5]))
     np.testing.assert_array_equal(found, [True, False, True, True])
     np.testing.assert_array_equal(values, [90.0, 0.0, 10.0, 50.0])
     base = {"warm_start": ["sequential"], "activate_mm": 0.5, "activation_window": 0}
+    default = solve_central(crossing, make_settings("central", crossing, base))[0].candidates[0]
+    assert default.converged and [a[:2] for a in default.attempts][:2] == [(0, False), (1, False)]
+    monkeypatch.setattr(nlp, "_WARM_MAX_NEW", 10.0)
     runs = {}
     for warm in (True, False):
         settings = make_settings("central", crossing, {**base, "warm_rounds": warm})
