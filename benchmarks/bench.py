@@ -120,6 +120,13 @@ def cmd_table(args: argparse.Namespace) -> None:
     print(f"\n`{data.get('command', '')}` ({data['date_utc']}, {data['machine']['fiberplan_commit'][:10]})")
 
 
+def _seed_list(text: str) -> list[int]:
+    try:
+        return [int(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        sys.exit(f"--seed-list: expected comma-separated integers such as 1,2,3, got {text!r}")
+
+
 def cmd_compare(args: argparse.Namespace) -> None:
     from fiberplan.studies import run_compare
 
@@ -131,8 +138,9 @@ def cmd_compare(args: argparse.Namespace) -> None:
         key, raw = item.split("=", 1)
         planner, setting_name = key.split(".", 1)
         settings.setdefault(planner, {})[setting_name] = json.loads(raw)
-    result = run_compare(args.instrument, args.n, args.planners.split(","), list(range(args.seeds)), kind=args.kind,
-                         settings=settings, energy_gap=args.energy_gap)
+    seeds = _seed_list(args.seed_list) if args.seed_list else list(range(args.seeds))
+    result = run_compare(args.instrument, args.n, args.planners.split(","), seeds, kind=args.kind, settings=settings,
+                         energy_gap=args.energy_gap)
     path = write_summary(name, {"command": " ".join(["python", "benchmarks/bench.py", *sys.argv[1:]])} | result.to_dict())
     print(f"wrote {path}")
 
@@ -151,6 +159,7 @@ def main() -> None:
     comp.add_argument("-n", type=int, default=7)
     comp.add_argument("--planners", default="central,mpc,dnf")
     comp.add_argument("--seeds", type=int, default=30)
+    comp.add_argument("--seed-list", default=None, help="comma-separated seeds (instead of --seeds)")
     comp.add_argument("--kind", default="hard")
     comp.add_argument("--set", action="append", default=[], metavar="PLANNER.KEY=JSON")
     comp.add_argument("--energy-gap", action="store_true")
