@@ -303,3 +303,32 @@ def test_verifier_counts_start_stop_cycles(moons_run):
     spec["motors"]["max_start_stops"] = 0
     with pytest.raises(InstrumentError, match="max_start_stops must be an integer >= 1"):
         instrument_from_dict(spec, origin="test")
+
+
+@pytest.mark.parametrize("instrument, kind, planner", [("desi", "random", "mpc"), ("moons-capsules", "unfold", "mpc"), ("desi", "random", "dnf")])
+def test_the_straight_pass_gives_the_searchs_profiles(instrument, kind, planner, monkeypatch):
+    """Positioners fitted at once by the one-segment pass get exactly the profiles the search
+    would give them (and the pass does fit some, so this compares something)."""
+    import fiberplan.profiles as profiles_module
+
+    result = fp.plan(fp.make_scenario(instrument, 61, kind, 3), planner)
+    fitted = []
+    original = profiles_module._Fitter._straight_pass
+
+    def counted(self):
+        done = original(self)
+        fitted.append(int(done.sum()))
+        return done
+
+    monkeypatch.setattr(profiles_module._Fitter, "_straight_pass", counted)
+    fast = fp.discretise(result)
+    monkeypatch.setattr(profiles_module, "STRAIGHT_PASS", False)
+    searched = fp.discretise(result)
+    assert fitted and fitted[0] > 0
+    assert fast.joints.keys() == searched.joints.keys()
+    for key, prof in searched.joints.items():
+        other = fast.joints[key]
+        assert (other.start_s, other.start_rad) == (prof.start_s, prof.start_rad), key
+        np.testing.assert_array_equal(other.durations_s, prof.durations_s)
+        np.testing.assert_array_equal(other.speeds_rad_s, prof.speeds_rad_s)
+    np.testing.assert_array_equal(fast.trajectory().joints, searched.trajectory().joints)

@@ -203,3 +203,41 @@ def test_motor_table_is_read_strictly(tmp_path):
         path.write_text(text.replace(bad, bad.split("=")[0] + '= "x"'))
         with pytest.raises(InstrumentError, match=message):
             load_instrument(path)
+
+
+@pytest.mark.parametrize("instrument", ["desi", "moons", "sdss"])
+def test_clearances_the_verifier_returns_are_exact_near_and_lower_bounds_far(instrument):
+    """``verify_with_clearances``: the same report as ``verify``; each pair's clearance at each
+    sample is the exact one where the verifier computed it, and never above the exact one."""
+    from fiberplan.geometry import min_pair_clearance
+    from fiberplan.verify import verify_with_clearances
+
+    sc = make_scenario(instrument, 19, "random", 2)
+    traj = plan(sc, "straight").trajectory
+    report, pairs, clear = verify_with_clearances(sc, traj)
+    assert report.to_dict() == verify(sc, traj).to_dict()
+    np.testing.assert_array_equal(pairs, sc.pairs)
+    exact = min_pair_clearance(sc.instrument, sc.base_xy, sc.orient, traj.joints, pairs)
+    assert clear.shape == exact.shape
+    assert np.all(clear <= exact + 1e-9)
+    near = clear < 2.0
+    assert near.any() and (~near).any()
+    np.testing.assert_allclose(clear[near], exact[near], atol=1e-9)
+
+
+def test_enclosing_disc_gap_equals_the_plain_reduction():
+    """The verifier's lower bound, written one end point at a time, equals the plain numpy one."""
+    from fiberplan.geometry import capsule_segments
+    from fiberplan.verify import _enclosing_disc_gap
+
+    for name in ("desi", "moons", "sdss"):
+        sc = make_scenario(name, 37, "random", 1)
+        joints = plan(sc, "straight").trajectory.joints[::7]
+        radii = np.array([c.radius_mm for c in sc.instrument.capsules])
+        start, end = capsule_segments(sc.instrument, sc.base_xy, sc.orient, joints)
+        points = np.concatenate([start, end], axis=-2)
+        centre = 0.5 * (points.min(axis=-2) + points.max(axis=-2))
+        radius = (np.linalg.norm(points - centre[..., None, :], axis=-1) + np.concatenate([radii, radii])).max(axis=-1)
+        a, b = sc.pairs[:, 0], sc.pairs[:, 1]
+        plain = np.linalg.norm(centre[:, a] - centre[:, b], axis=-1) - radius[:, a] - radius[:, b]
+        np.testing.assert_array_equal(_enclosing_disc_gap(sc.instrument, sc.base_xy, sc.orient, joints, sc.pairs, radii), plain)

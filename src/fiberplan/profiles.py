@@ -26,6 +26,7 @@ algorithm and its guarantee are in ``formulations/profiles.md``; in short:
 
 from __future__ import annotations
 
+import functools
 import itertools
 import time
 from dataclasses import dataclass, field
@@ -34,12 +35,11 @@ from typing import Any
 import numpy as np
 
 from fiberplan.errors import ProfileError
-from fiberplan.geometry import capsule_segments, min_pair_clearance, point_extents
+from fiberplan.geometry import point_extents
 from fiberplan.instrument import Instrument, MotorLimits
-from fiberplan.layout import neighbour_pairs
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult, Trajectory
-from fiberplan.verify import VerificationReport, verify
+from fiberplan.verify import VerificationReport, verify, verify_with_clearances
 
 JOINTS = ("alpha", "beta")
 DEFAULT_FRACTION = 0.5  # f: the share of a pair's planned clearance the two profiles may use
@@ -49,11 +49,11 @@ SAMPLE_MAX_S = 0.05  # the rebuilt trajectory has a sample at least this often
 TIME_ROUND_S = 1e-9  # breakpoint times of different joints closer than this are one sample
 SEARCH = (4, 400)  # (next segments tried from each breakpoint, breakpoints one joint's search may try) in the first pass
 REFIT_SEARCH = (8, 800)  # the same for a positioner fitted again after breaking a motor limit
+STRAIGHT_PASS = True  # fit the positioners whose joints hold one segment each at once (:meth:`_Fitter._straight_pass`)
 REFIT_PASSES = 1  # passes over the positioners that break a motor limit
 ALPHA_SHARES = (0.5, 0.75)  # splits of a refitted positioner's room between alpha and beta
 REFIT_FRACTION = 0.9  # share of a pair's planned clearance a positioner refitted after breaking a motor limit may use
 REFINE = 5  # a positioner that breaks a motor limit is fitted again with this many breakpoint instants per sample interval
-_FAR_MM = 20.0  # pairs whose enclosing discs are farther apart are budgeted by that gap
 _TOL = 1e-12
 
 
@@ -74,9 +74,15 @@ class JointProfile:
     speeds_rad_s: np.ndarray
 
     def knots(self) -> tuple[np.ndarray, np.ndarray]:
-        """Breakpoint times and angles ``(S + 1,)`` each: the time-stamped angle points."""
+        """Breakpoint times and angles ``(S + 1,)`` each: the time-stamped angle points (read-only)."""
+        return self._knots
+
+    @functools.cached_property
+    def _knots(self) -> tuple[np.ndarray, np.ndarray]:
         times = self.start_s + np.concatenate([[0.0], np.cumsum(self.durations_s)])
         angles = self.start_rad + np.concatenate([[0.0], np.cumsum(self.speeds_rad_s * self.durations_s)])
+        times.flags.writeable = False
+        angles.flags.writeable = False
         return times, angles
 
 
@@ -194,7 +200,7 @@ def discretise_trajectory(
     if not 0.0 < fraction < 1.0:
         raise ProfileError(f"fraction must lie in (0, 1), found {fraction}")
     started = time.perf_counter()
-    source = verify(scenario, trajectory, instrument=inst)
+    source, pairs, clear = verify_with_clearances(scenario, trajectory, instrument=inst)
     verify_s = time.perf_counter() - started
     if not source.ok:
         raise ProfileError(
@@ -203,14 +209,15 @@ def discretise_trajectory(
             "run `fiberplan verify` on it"
         )
     times, joints = trajectory.times, trajectory.joints
-    fitter = _Fitter(inst, times, joints, _period_steps(inst.motors, times), _Room(inst, scenario, joints, fraction))
+    fitter = _Fitter(inst, times, joints, _period_steps(inst.motors, times), _Room(inst, joints, pairs, clear, fraction))
     fitter.fit_all(fraction)
     followed: list[int] = []
     rounds = 0
     while True:
         profiles = Profiles(scenario, dict(sorted(fitter.fits.items())))
         checked = time.perf_counter()
-        report = verify(scenario, profiles.trajectory(), instrument=inst)
+        rebuilt = profiles.trajectory()
+        report = verify(scenario, rebuilt, instrument=inst)
         verify_s += time.perf_counter() - checked
         if report.ok:
             break
@@ -225,7 +232,6 @@ def discretise_trajectory(
                 followed.append(ident)
             else:
                 fitter.narrow(scenario.index_of(ident))
-    rebuilt = profiles.trajectory()
     stats = {
         "limits": limits_applied(inst),
         "fraction": fraction,
@@ -262,7 +268,8 @@ class _Fitter:
         """First every positioner in half of each pair's room; then those that break a motor
         limit in the room their neighbours leave; last, for those still short, the neighbours
         make room (each fitted in a quarter of its half, kept only if it breaks no limit)."""
-        for i in range(self.joints.shape[1]):
+        done = self._straight_pass() if STRAIGHT_PASS else np.zeros(self.joints.shape[1], dtype=bool)
+        for i in np.flatnonzero(~done).tolist():
             self.relaxed[i] = self._fit(i, self.room.half(i))
         for _ in range(REFIT_PASSES):
             for i in np.argsort(-self.relaxed, kind="stable")[: np.count_nonzero(self.relaxed)].tolist():
@@ -273,6 +280,72 @@ class _Fitter:
                 if self.relaxed[j] or not kept or self._fit(j, self.room.half(j) * NARROWING):
                     self._restore(j, kept)
             self._refit(i, fraction)
+
+    def _straight_pass(self) -> np.ndarray:
+        """Fit at once, with numpy over all positioners, those each of whose moving joints
+        holds one constant-speed segment from its first move to its last (most positioners on
+        DESI-like plans): the profiles the search of :func:`_fit_positioner` would return
+        (its first option, the farthest end, is taken there), in a fraction of its time.
+        Returns ``(N,)`` which positioners were fitted; the others are left to the search.
+
+        A joint qualifies when the line's speed is one the motors accept from a stop and its
+        deviation from the planned samples, as the rebuilt trajectory will have it, stays
+        strictly inside the corridor (a relative margin of ``1e-9``, so the search, which has
+        a tolerance of its own, would take the same segment). The corridor is worked out only
+        for the positioners whose lines fit the room of their closest pair."""
+        times, joints, step, room, inst = self.times, self.joints, self.step, self.room, self.inst
+        n_t, n = joints.shape[0], joints.shape[1]
+        if n_t < 2:
+            return np.zeros(n, dtype=bool)
+        changed = joints[1:] != joints[:-1]  # (T - 1, N, 2)
+        moving = changed.any(axis=0)  # (N, 2)
+        ok = np.ones(n, dtype=bool)
+        cols = np.arange(n)
+        lows = (0.0, 0.0) if inst.motors.min_speed_rad_s is None else inst.motors.min_speed_rad_s
+        stops = (inst.alpha_limits_rad, inst.beta_limits_rad)
+        tops = (inst.alpha_speed_rad_s, inst.beta_speed_rad_s)
+        found: list[tuple[np.ndarray, ...]] = []
+        for axis in (0, 1):
+            q = joints[:, :, axis]  # (T, N)
+            first = np.argmax(changed[:, :, axis], axis=0)
+            last = n_t - 2 - np.argmax(changed[::-1, :, axis], axis=0)
+            k0 = first // step * step
+            k1 = k0 + -(-(last + 1 - k0) // step) * step
+            mv = moving[:, axis]
+            ok &= ~mv | (k1 < n_t)
+            k1 = np.minimum(k1, n_t - 1)
+            t0, q0, q1 = times[k0], q[k0, cols], q[k1, cols]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                d = times[k1] - t0
+                speed = (q1 - q0) / d
+                t_end, q_end = t0 + d, q0 + speed * d  # the knots, as JointProfile.knots has them
+                slope = (q_end - q0) / (t_end - t0)
+                tt = times[:, None]
+                line = np.where(tt < t0, q0, np.where(tt >= t_end, q_end, slope * (tt - t0) + q0))  # np.interp's values
+                dev = np.where(mv, room.rho[axis] * np.abs(line - q), 0.0)  # (T, N) mm
+            allowed = (np.abs(speed) <= tops[axis]) & (np.abs(speed) >= max(lows[axis], _TOL))
+            in_stops = (np.minimum(q0, q_end) >= stops[axis][0] - _TOL) & (np.maximum(q0, q_end) <= stops[axis][1] + _TOL)
+            ok &= ~mv | (allowed & in_stops)
+            found.append((mv, t0, q0, d, speed, dev))
+        dev_a, dev_b = found[0][5], found[1][5]
+        share = np.where(moving[:, 1], 0.5, 1.0)  # alpha's share of the budget: half when beta moves
+        bound = room.half_bound()  # (T, N) >= each positioner's budget
+        ok &= np.all((dev_a <= share * bound) & (dev_a + dev_b <= bound), axis=0)
+        idx = np.flatnonzero(ok)
+        left = room.half_of(idx)  # (T, len(idx)) the budget, as _fit_positioner has it
+        share = share[idx]
+        band_a = np.where(np.isfinite(left), share * np.maximum(left, 0.0), np.inf)
+        left = left - dev_a[:, idx]  # beta has what alpha leaves
+        band_b = np.where(np.isfinite(left), np.maximum(left, 0.0), np.inf)
+        margin = 1.0 - 1e-9
+        fits = np.all((dev_a[:, idx] <= band_a * margin) & (dev_b[:, idx] <= band_b * margin), axis=0)
+        ok[idx[~fits]] = False
+        for i in np.flatnonzero(ok).tolist():
+            for axis, (mv, t0, q0, d, speed, _) in enumerate(found):
+                if mv[i]:
+                    self.fits[(i, axis)] = JointProfile(float(t0[i]), float(q0[i]), np.array([d[i]]), np.array([speed[i]]))
+        room.deviation[:, ok] = (dev_a + dev_b)[:, ok]
+        return ok
 
     def _restore(self, i: int, kept: dict[tuple[int, int], JointProfile]) -> None:
         for axis in (0, 1):
@@ -315,16 +388,16 @@ class _Room:
     """How far (mm, motion bound) each positioner may leave its planned path at each sample.
 
     A pair ``(i, j)`` shares ``f c_ij``, with ``c_ij`` its planned clearance at the sample and
-    its two neighbours (the deviation is linear between samples, so a sample's room covers both
+    its two neighbours (as the verifier measured it on the planned trajectory: exact where the
+    pair's enclosing discs are within 2 mm, that gap, a lower bound, beyond) (the deviation is linear between samples, so a sample's room covers both
     intervals). :meth:`half` gives ``i`` half of it (all of it when ``j`` never moves);
     :meth:`left` what ``j``'s profile, as fitted so far, leaves (:meth:`record`).
     """
 
-    def __init__(self, inst: Instrument, scenario: Scenario, joints: np.ndarray, fraction: float) -> None:
+    def __init__(self, inst: Instrument, joints: np.ndarray, pairs: np.ndarray, clear: np.ndarray, fraction: float) -> None:
         self.rho = point_extents(inst)
-        self.pairs = neighbour_pairs(inst, scenario.base_xy)
+        self.pairs = pairs
         n_t, n = joints.shape[0], joints.shape[1]
-        clear = _pair_clearances(inst, scenario, joints, self.pairs) if len(self.pairs) else np.zeros((n_t, 0))
         near = clear.copy()
         near[1:] = np.minimum(near[1:], clear[:-1])
         near[:-1] = np.minimum(near[:-1], clear[1:])
@@ -332,7 +405,10 @@ class _Room:
         self.shared = fraction * self.clear
         self.still = np.all(joints == joints[:1], axis=(0, 2))  # (N,) never moves
         self.deviation = np.zeros((n_t, n))  # (T, N) motion bound of each fitted profile's deviation
-        self.of = [np.flatnonzero((self.pairs == i).any(axis=1)) for i in range(n)]
+        ends = np.concatenate([np.arange(len(pairs)), np.arange(len(pairs))])
+        owner = pairs.T.ravel()  # the positioner at each pair end, first ends then second
+        order = np.lexsort((ends, owner))
+        self.of = np.split(ends[order], np.searchsorted(owner[order], np.arange(1, n)))  # per positioner, its pair rows, ascending
 
     def _others(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         rows = self.of[i]
@@ -348,6 +424,37 @@ class _Room:
         if len(rows) == 0:
             return np.full(self.shared.shape[0], np.inf)
         return (self.shared[:, rows] * np.where(self.still[other], 1.0, 0.5)).min(axis=1)
+
+    def half_bound(self) -> np.ndarray:
+        """``(T, N)``: an upper bound on :meth:`half` of every positioner, from its closest
+        pair alone (the one whose planned clearance falls lowest); infinite without pairs."""
+        n_t, n = self.shared.shape[0], len(self.still)
+        out = np.full((n_t, n), np.inf)
+        if len(self.pairs) == 0:
+            return out
+        low = self.clear.min(axis=0)  # (P,)
+        rows = np.array([r[np.argmin(low[r])] if len(r) else -1 for r in self.of])
+        has = np.flatnonzero(rows >= 0)
+        other = np.where(self.pairs[rows[has], 0] == has, self.pairs[rows[has], 1], self.pairs[rows[has], 0])
+        out[:, has] = self.shared[:, rows[has]] * np.where(self.still[other], 1.0, 0.5)
+        return out
+
+    def half_of(self, idx: np.ndarray) -> np.ndarray:
+        """``(T, len(idx))``: :meth:`half` of the positioners ``idx`` at once (the same values)."""
+        n_t = self.shared.shape[0]
+        out = np.full((n_t, len(idx)), np.inf)
+        rows = [self.of[i] for i in idx.tolist()]
+        sizes = np.array([len(r) for r in rows], dtype=int)
+        if sizes.sum() == 0:
+            return out
+        rows_all = np.concatenate(rows)
+        owner = np.repeat(idx, sizes)
+        other = np.where(self.pairs[rows_all, 0] == owner, self.pairs[rows_all, 1], self.pairs[rows_all, 0])
+        values = self.shared[:, rows_all] * np.where(self.still[other], 1.0, 0.5)
+        has = np.flatnonzero(sizes)
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])[has]
+        out[:, has] = np.minimum.reduceat(values, starts, axis=1)
+        return out
 
     def left(self, i: int, fraction: float) -> np.ndarray:
         """``(T,)``: each pair's room, ``fraction`` of its planned clearance, less the neighbour's
@@ -380,24 +487,6 @@ def _deviation(rho: np.ndarray, fits: dict[tuple[int, int], JointProfile], i: in
         if prof is not None:
             t_knot, q_knot = prof.knots()
             out += rho[axis] * np.abs(np.interp(times, t_knot, q_knot) - q[:, axis])
-    return out
-
-
-def _pair_clearances(inst: Instrument, scenario: Scenario, joints: np.ndarray, pairs: np.ndarray, chunk: int = 64) -> np.ndarray:
-    """``(T, P)`` planned clearances: exact for pairs whose enclosing discs are within
-    ``_FAR_MM``, that gap (a lower bound) for the others."""
-    radii = np.array([c.radius_mm for c in inst.capsules])
-    out = np.empty((joints.shape[0], len(pairs)))
-    for k0 in range(0, joints.shape[0], chunk):
-        q = joints[k0:k0 + chunk]
-        start, end = capsule_segments(inst, scenario.base_xy, scenario.orient, q)
-        points = np.concatenate([start, end], axis=-2)
-        centre = 0.5 * (points.min(axis=-2) + points.max(axis=-2))
-        reach = (np.linalg.norm(points - centre[..., None, :], axis=-1) + np.concatenate([radii, radii])).max(axis=-1)
-        gap = np.linalg.norm(centre[:, pairs[:, 0]] - centre[:, pairs[:, 1]], axis=-1) - reach[:, pairs[:, 0]] - reach[:, pairs[:, 1]]
-        near = np.flatnonzero((gap < _FAR_MM).any(axis=0))
-        gap[:, near] = min_pair_clearance(inst, scenario.base_xy, scenario.orient, q, pairs[near])
-        out[k0:k0 + chunk] = gap
     return out
 
 
@@ -587,8 +676,9 @@ def _options(cor: _Corridor, k: int, p: float, prev: float) -> list[tuple[int, f
         lo = np.maximum(s_lo, a)
         hi = np.minimum(s_hi, b)
         for c in np.flatnonzero(lo <= hi + _TOL)[-cor.branches:].tolist():
-            s = float(np.clip(aim[c], lo[c], max(lo[c], hi[c])))
-            found.append((int(ends[c]), s, abs(s - aim[c])))
+            lo_c, hi_c, aim_c = float(lo[c]), float(hi[c]), float(aim[c])
+            s = min(max(aim_c, lo_c), max(lo_c, hi_c))  # np.clip's value, without its per-call cost
+            found.append((int(ends[c]), s, abs(s - aim_c)))
     found.sort(key=lambda f: (-f[0], f[2]))
     return [(m, s) for m, s, _ in found[:cor.branches]]
 
