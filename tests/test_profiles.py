@@ -306,9 +306,10 @@ def test_verifier_counts_start_stop_cycles(moons_run):
 
 
 @pytest.mark.parametrize("instrument, kind, planner", [("desi", "random", "mpc"), ("moons-capsules", "unfold", "mpc"), ("desi", "random", "dnf")])
-def test_the_straight_pass_gives_the_searchs_profiles(instrument, kind, planner, monkeypatch):
-    """Positioners fitted at once by the one-segment pass get exactly the profiles the search
-    would give them (and the pass does fit some, so this compares something)."""
+def test_the_one_segment_shortcuts_give_the_searchs_profiles(instrument, kind, planner, monkeypatch):
+    """Joints fitted by the one-segment shortcuts (all positioners at once, then joint by joint)
+    get exactly the profiles the search would give them (and the pass does fit some, so this
+    compares something)."""
     import fiberplan.profiles as profiles_module
 
     result = fp.plan(fp.make_scenario(instrument, 61, kind, 3), planner)
@@ -322,7 +323,7 @@ def test_the_straight_pass_gives_the_searchs_profiles(instrument, kind, planner,
 
     monkeypatch.setattr(profiles_module._Fitter, "_straight_pass", counted)
     fast = fp.discretise(result)
-    monkeypatch.setattr(profiles_module, "STRAIGHT_PASS", False)
+    monkeypatch.setattr(profiles_module, "ONE_SEGMENT_SHORTCUTS", False)
     searched = fp.discretise(result)
     assert fitted and fitted[0] > 0
     assert fast.joints.keys() == searched.joints.keys()

@@ -49,7 +49,7 @@ SAMPLE_MAX_S = 0.05  # the rebuilt trajectory has a sample at least this often
 TIME_ROUND_S = 1e-9  # breakpoint times of different joints closer than this are one sample
 SEARCH = (4, 400)  # (next segments tried from each breakpoint, breakpoints one joint's search may try) in the first pass
 REFIT_SEARCH = (8, 800)  # the same for a positioner fitted again after breaking a motor limit
-STRAIGHT_PASS = True  # fit the positioners whose joints hold one segment each at once (:meth:`_Fitter._straight_pass`)
+ONE_SEGMENT_SHORTCUTS = True  # joints one segment fits skip the search (all at once: :meth:`_Fitter._straight_pass`; one by one: :func:`_fit_joint`)
 REFIT_PASSES = 1  # passes over the positioners that break a motor limit
 ALPHA_SHARES = (0.5, 0.75)  # splits of a refitted positioner's room between alpha and beta
 REFIT_FRACTION = 0.9  # share of a pair's planned clearance a positioner refitted after breaking a motor limit may use
@@ -268,7 +268,7 @@ class _Fitter:
         """First every positioner in half of each pair's room; then those that break a motor
         limit in the room their neighbours leave; last, for those still short, the neighbours
         make room (each fitted in a quarter of its half, kept only if it breaks no limit)."""
-        done = self._straight_pass() if STRAIGHT_PASS else np.zeros(self.joints.shape[1], dtype=bool)
+        done = self._straight_pass() if ONE_SEGMENT_SHORTCUTS else np.zeros(self.joints.shape[1], dtype=bool)
         for i in np.flatnonzero(~done).tolist():
             self.relaxed[i] = self._fit(i, self.room.half(i))
         for _ in range(REFIT_PASSES):
@@ -602,6 +602,13 @@ def _fit_joint(
     hi = np.minimum(q + band, stops[1] + _TOL)
     lo[k0], hi[k0], lo[k1], hi[k1] = q[k0], q[k0], q[k1], q[k1]
     _reachable(lo, hi, times, top, k0, k1)
+    p0 = float(q[k0])
+    dt = times[k0 + 1:k1 + 1] - times[k0]
+    s_lo, s_hi = float(np.max((lo[k0 + 1:k1 + 1] - p0) / dt)), float(np.min((hi[k0 + 1:k1 + 1] - p0) / dt))
+    if ONE_SEGMENT_SHORTCUTS and s_lo <= s_hi + _TOL and any(max(s_lo, a) <= min(s_hi, b) + _TOL for a, b in _allowed_speeds(0.0, top, motors, axis)):
+        # One segment fits: the search's first option (the farthest end, here the last), taken directly.
+        durations = np.diff(times[[k0, k1]])
+        return _trimmed(float(times[k0]), p0, durations, np.diff(np.array([p0, float(q[k1])])) / durations), 0
     cor = _Corridor(times, q, lo, hi, k0, k1, step, top, motors, axis, search[0])
     stack = [_Node(k0, float(q[k0]), 0.0, _options(cor, k0, float(q[k0]), 0.0))]
     tried = 0
