@@ -92,6 +92,15 @@ def capsule_segments(
     Returns:
         ``(start, end)``, each of shape ``(..., N, C, 2)`` for the instrument's ``C`` capsules.
     """
+    start_x, start_y, end_x, end_y = capsule_coordinates(instrument, base_xy, orient, joints)
+    return np.stack([start_x, start_y], axis=-1), np.stack([end_x, end_y], axis=-1)
+
+
+def capsule_coordinates(
+    instrument: Instrument, base_xy: np.ndarray, orient: np.ndarray, joints: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`capsule_segments` as four ``(..., N, C)`` arrays ``start_x, start_y, end_x,
+    end_y`` (the same values, without stacking them)."""
     on_alpha, start_mm, end_mm, _, _ = capsule_tables(instrument)
     a = joints[..., 0] + orient
     ab = a + joints[..., 1]
@@ -104,13 +113,11 @@ def capsule_segments(
     dir_y = np.where(on_alpha, sin_a[..., None], np.sin(ab)[..., None])
     lateral = _lateral(instrument)
     if lateral is None:
-        start = np.stack([origin_x + start_mm * dir_x, origin_y + start_mm * dir_y], axis=-1)
-        end = np.stack([origin_x + end_mm * dir_x, origin_y + end_mm * dir_y], axis=-1)
-        return start, end
+        return origin_x + start_mm * dir_x, origin_y + start_mm * dir_y, origin_x + end_mm * dir_x, origin_y + end_mm * dir_y
     start_y, end_y = lateral  # to the left: the direction turned by +90 degrees, (-dir_y, dir_x)
-    start = np.stack([origin_x + start_mm * dir_x - start_y * dir_y, origin_y + start_mm * dir_y + start_y * dir_x], axis=-1)
-    end = np.stack([origin_x + end_mm * dir_x - end_y * dir_y, origin_y + end_mm * dir_y + end_y * dir_x], axis=-1)
-    return start, end
+    return (origin_x + start_mm * dir_x - start_y * dir_y, origin_y + start_mm * dir_y + start_y * dir_x,
+            origin_x + end_mm * dir_x - end_y * dir_y, origin_y + end_mm * dir_y + end_y * dir_x)
+
 
 
 def point_to_segment(

@@ -663,14 +663,20 @@ class _Node:
 def _cone(cor: _Corridor, k: int, p: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """From angle ``p`` at sample ``k``: the candidate breakpoint samples, and at each the
     speeds ``[s_lo, s_hi]`` that keep a segment in the corridor, and the speed back onto the path."""
+    window = slice(k + 1, cor.k1 + 1)
+    dt = cor.times[window] - cor.times[k]
+    s_lo = np.maximum.accumulate((cor.lo[window] - p) / dt)
+    s_hi = np.minimum.accumulate((cor.hi[window] - p) / dt)
+    closed = s_lo > s_hi + _TOL  # from its first True on (the cone only narrows)
+    open_ = int(np.argmax(closed)) if closed[-1] else len(dt)
     js = np.arange(k + 1, cor.k1 + 1)
-    dt = cor.times[js] - cor.times[k]
-    s_lo = np.maximum.accumulate((cor.lo[js] - p) / dt)
-    s_hi = np.minimum.accumulate((cor.hi[js] - p) / dt)
-    open_ = int(np.argmin(s_lo <= s_hi + _TOL)) if not np.all(s_lo <= s_hi + _TOL) else len(js)
-    cand = np.flatnonzero((((js - cor.k0) % cor.step == 0) | (js == cor.k1))[:open_])
-    if len(cand) == 0:
-        cand = np.flatnonzero(((js - cor.k0) % cor.step == 0) | (js == cor.k1))[:1]
+    if cor.step == 1:
+        cand = np.arange(max(open_, 1))
+    else:
+        on_grid = ((js - cor.k0) % cor.step == 0) | (js == cor.k1)
+        cand = np.flatnonzero(on_grid[:open_])
+        if len(cand) == 0:
+            cand = np.flatnonzero(on_grid)[:1]
     return js[cand], s_lo[cand], s_hi[cand], (cor.q[js[cand]] - p) / dt[cand]
 
 

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from fiberplan.errors import TrajectoryError
-from fiberplan.geometry import capsule_segments, clearance_between, motion_bound, point_extents
+from fiberplan.geometry import capsule_coordinates, clearance_between, motion_bound, point_extents
 from fiberplan.instrument import Instrument
 from fiberplan.instrument_io import load_instrument, preset_names
 from fiberplan.layout import neighbour_pairs
@@ -360,10 +360,10 @@ def _enclosing_disc_gap(
     """Lower bound ``(T, P)`` on each pair's clearance from discs enclosing every capsule of a
     positioner (centred on the bounding box of the capsules' end points). The few end points
     are taken one at a time: numpy reduces a short last axis several times slower."""
-    start, end = capsule_segments(instrument, base_xy, orient, joints)  # (T, N, C, 2)
-    n_caps = start.shape[-2]
-    xs = [start[..., k, 0] for k in range(n_caps)] + [end[..., k, 0] for k in range(n_caps)]
-    ys = [start[..., k, 1] for k in range(n_caps)] + [end[..., k, 1] for k in range(n_caps)]
+    start_x, start_y, end_x, end_y = capsule_coordinates(instrument, base_xy, orient, joints)  # (T, N, C) each
+    n_caps = start_x.shape[-1]
+    xs = [start_x[..., k] for k in range(n_caps)] + [end_x[..., k] for k in range(n_caps)]
+    ys = [start_y[..., k] for k in range(n_caps)] + [end_y[..., k] for k in range(n_caps)]
     cx = 0.5 * (functools.reduce(np.minimum, xs) + functools.reduce(np.maximum, xs))  # (T, N)
     cy = 0.5 * (functools.reduce(np.minimum, ys) + functools.reduce(np.maximum, ys))
     point_radii = np.concatenate([radii, radii])
