@@ -269,8 +269,10 @@ def _verify(
         hit = exact.min(axis=1) < 0.0
         if np.any(hit):
             record(near_p[hit], times[k0 + near_t[hit]], exact[hit])
-    finite_clear = sample_clear[np.isfinite(sample_clear)]
-    report.min_clearance_mm = float(finite_clear.min()) if finite_clear.size else float("inf")
+    if report.non_finite:
+        report.min_clearance_mm = float(np.min(sample_clear, where=np.isfinite(sample_clear), initial=np.inf))
+    else:  # every sample finite: so is every clearance (no copy of the whole table)
+        report.min_clearance_mm = float(sample_clear.min())
 
     # Between samples: bisect the intervals whose motion bound is not small against the clearance.
     if n_t > 1:
@@ -309,7 +311,8 @@ def _between_samples(
         motion = motion_bound(rho, np.abs(joints[k0 + 1:k1 + 1] - joints[k0:k1]))  # (chunk, N)
         bound = motion[:, pairs[:, 0]] + motion[:, pairs[:, 1]]  # (chunk, P)
         c0, c1 = sample_clear[k0:k1], sample_clear[k0 + 1:k1 + 1]
-        needs = (bound > fraction * np.minimum(c0, c1)) & (c0 >= 0.0) & (c1 >= 0.0) & (bound > 0.0)
+        both = np.minimum(c0, c1)  # NaN where either is unknown; >= 0 where neither collides
+        needs = (bound > fraction * both) & (both >= 0.0)  # then bound > 0 too
         kk, pp = np.nonzero(needs)
         found.append((kk + k0, pp, c0[kk, pp], c1[kk, pp], bound[kk, pp]))
     k_idx, p_idx, clo, chi, bnd = (np.concatenate(parts) for parts in zip(*found, strict=True))
