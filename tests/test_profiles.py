@@ -333,3 +333,37 @@ def test_the_one_segment_shortcuts_give_the_searchs_profiles(instrument, kind, p
         np.testing.assert_array_equal(other.durations_s, prof.durations_s)
         np.testing.assert_array_equal(other.speeds_rad_s, prof.speeds_rad_s)
     np.testing.assert_array_equal(fast.trajectory().joints, searched.trajectory().joints)
+
+
+def test_pauses_mend_reversals_and_speed_jumps_by_holding_everyone():
+    """Where the fitted profiles still reverse without a stop or jump in speed, everyone holds
+    still for one sample step there: those violations go, the rest of the motion is the same,
+    retimed (each joint's angle at a paused instant is its angle at the mapped instant before)."""
+    import fiberplan.profiles as profiles_module
+
+    run = fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 3), "mpc", {"motor_limits": False})
+    plain = fp.discretise(run, pauses=False)
+    paused = fp.discretise(run)
+    kinds = {v.kind for v in plain.report.motor_violations}
+    assert {"reversal", "speed_change"} <= kinds  # the case this test is about
+    assert paused.report.ok
+    assert not {v.kind for v in paused.report.motor_violations} & {"reversal", "speed_change"}
+    stats = paused.stats
+    pause_times = profiles_module._pause_times(plain.joints, run.scenario.instrument.motors)
+    assert stats["pauses"] == len(pause_times) > 0
+    step = float(np.min(np.diff(run.trajectory.times)))
+    assert stats["pause_s"] == pytest.approx(step * len(pause_times))
+    assert stats["makespan_after_s"] == pytest.approx(stats["makespan_before_s"] + stats["pause_s"], abs=1e-6)
+
+    def mapped(tau: np.ndarray) -> np.ndarray:  # paused time -> time before pausing
+        sigma = tau.copy()
+        for k, t in enumerate(pause_times):
+            begin = t + k * step  # the k-th pause starts here on the paused clock
+            sigma = np.where(tau >= begin + step, sigma - step, np.where(tau > begin, sigma - (tau - begin), sigma))
+        return sigma
+
+    tau = np.linspace(0.0, stats["makespan_after_s"], 2001)
+    for key, prof in paused.joints.items():
+        t_new, q_new = prof.knots()
+        t_old, q_old = plain.joints[key].knots()
+        np.testing.assert_allclose(np.interp(tau, t_new, q_new), np.interp(mapped(tau), t_old, q_old), atol=1e-9, err_msg=str(key))

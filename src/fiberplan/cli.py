@@ -466,8 +466,11 @@ def _paths_run(paths_file: Path, scenario_file: Path | None) -> Any:
               help="Export form (default: from the extension); points = time-stamped angle points (JSON).")
 @click.option("--fraction", type=click.FloatRange(0.0, 1.0, min_open=True, max_open=True), default=0.5, show_default=True,
               help="Share of each pair's planned clearance the profiles may use.")
+@click.option("--pauses/--no-pauses", default=True, show_default=True,
+              help="Where a joint would still reverse without a stop or jump in speed beyond the motors' limit, everyone holds "
+                   "still for one sample step (the makespan grows by the pauses).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON summary.")
-def profiles(run_file: Path, out: Path, form: str | None, fraction: float, as_json: bool) -> None:
+def profiles(run_file: Path, out: Path, form: str | None, fraction: float, pauses: bool, as_json: bool) -> None:
     """Turn a verified trajectory file into motor profiles: per positioner and joint, a few
     constant-speed segments within the instrument's motor limits, rebuilt and verified before
     anything is written.
@@ -482,7 +485,7 @@ def profiles(run_file: Path, out: Path, form: str | None, fraction: float, as_js
     chosen = format_of(out, form)
     check_output_path(out, what="--out", inputs=[run_file], suffixes={"h5": HDF5_SUFFIXES, "csv": (".csv",)}.get(chosen, JSON_SUFFIXES))
     result = load_result(run_file)
-    made = discretise(result, fraction=fraction)
+    made = discretise(result, fraction=fraction, pauses=pauses)
     write_profiles(made, result, out, chosen)
     summary = made.summary() | {"format": chosen, "out": str(out)}
     if as_json:
@@ -496,6 +499,9 @@ def profiles(run_file: Path, out: Path, form: str | None, fraction: float, as_js
     unstated = [k for k, v in limits.items() if v is None]
     if unstated:
         click.echo(f"  not stated by the instrument (unconstrained): {', '.join(unstated)}")
+    if summary["pauses"]:
+        click.echo(f"  {summary['pauses']} pause(s) of everyone, {summary['pause_s']:.2f} s in all: where a joint would reverse without "
+                   "a stop or jump in speed (--no-pauses: leave them, reported as motor-limit violations)")
     if summary["followed_samples"]:
         click.echo(f"  positioners following their planned samples (narrower fits failed the verifier): {summary['followed_samples']}")
     if summary["motor_violations"]:

@@ -22,6 +22,10 @@ algorithm and its guarantee are in ``formulations/profiles.md``; in short:
    and passed through the independent verifier. Positioners in a collision are fitted again in
    a corridor four times narrower, twice; then they follow their verified planned samples.
    What cannot be verified is refused (:class:`~fiberplan.errors.ProfileError`), never exported.
+4. **Pauses.** Where a joint would still reverse without a stop or jump in speed beyond the
+   motors' limit, every positioner holds still for one sample step at that instant (a stop and a
+   start are exempt from both limits; a held configuration is one already verified), and the
+   result is verified again.
 """
 
 from __future__ import annotations
@@ -172,13 +176,16 @@ def limits_applied(instrument: Instrument) -> dict[str, Any]:
     }
 
 
-def discretise(result: PlanResult, *, fraction: float = DEFAULT_FRACTION, instrument: Instrument | None = None) -> Profiles:
+def discretise(
+    result: PlanResult, *, fraction: float = DEFAULT_FRACTION, instrument: Instrument | None = None, pauses: bool = True,
+) -> Profiles:
     """Motor profiles of a plan result (see :func:`discretise_trajectory`)."""
-    return discretise_trajectory(result.scenario, result.trajectory, fraction=fraction, instrument=instrument)
+    return discretise_trajectory(result.scenario, result.trajectory, fraction=fraction, instrument=instrument, pauses=pauses)
 
 
 def discretise_trajectory(
     scenario: Scenario, trajectory: Trajectory, *, fraction: float = DEFAULT_FRACTION, instrument: Instrument | None = None,
+    pauses: bool = True,
 ) -> Profiles:
     """Motor profiles of a verified trajectory, rebuilt and verified (see the module docstring).
 
@@ -187,6 +194,9 @@ def discretise_trajectory(
         trajectory: a trajectory the verifier passes (a plan result's, or anyone's).
         fraction: the share ``f`` of each pair's planned clearance the profiles may use (0, 1).
         instrument: the instrument whose limits apply (default: the scenario's).
+        pauses: where a joint's profile still reverses without a stop or changes speed by more
+            than the motors allow, every positioner holds still for one sample step (or command
+            period) at that instant (:func:`_paused`): the makespan grows by the pauses.
 
     Returns:
         :class:`Profiles` with ``report.ok`` true.
@@ -232,9 +242,25 @@ def discretise_trajectory(
                 followed.append(ident)
             else:
                 fitter.narrow(scenario.index_of(ident))
+    pause_times: list[float] = []
+    pause_s = max(float(np.min(np.diff(times))) if len(times) > 1 else 0.0, inst.motors.command_period_s or 0.0)
+    if pauses and report.motors_checked and pause_s > 0.0:
+        pause_times = _pause_times(profiles.joints, inst.motors)
+        if pause_times:
+            paused = Profiles(scenario, _paused(profiles.joints, pause_times, pause_s))
+            checked = time.perf_counter()
+            paused_rebuilt = paused.trajectory()
+            paused_report = verify(scenario, paused_rebuilt, instrument=inst)
+            verify_s += time.perf_counter() - checked
+            if paused_report.ok:  # a held configuration is one the profiles had: clear, but checked all the same
+                profiles, rebuilt, report = paused, paused_rebuilt, paused_report
+            else:
+                pause_times = []
     stats = {
         "limits": limits_applied(inst),
         "fraction": fraction,
+        "pauses": len(pause_times),
+        "pause_s": pause_s * len(pause_times),
         "refit_rounds": rounds,
         "followed_samples": sorted(set(followed)),
         "relaxed_segments": int(fitter.relaxed.sum()),
@@ -244,6 +270,58 @@ def discretise_trajectory(
         "of_which_verify_s": verify_s,
     }
     return Profiles(scenario, profiles.joints, report, stats)
+
+
+def _pause_times(joints: dict[tuple[int, int], JointProfile], motors: MotorLimits) -> list[float]:
+    """The breakpoints (s) where some joint's consecutive moving segments reverse without a stop
+    (``stop_before_reversing``) or change speed by more than ``max_speed_change`` of the first:
+    what a stop of everyone there mends (a stop and a start are exempt from both)."""
+    found: list[float] = []
+    tol = 1e-9  # the verifier's threshold of a moving command
+    for prof in joints.values():
+        t_knot, _ = prof.knots()
+        speeds = prof.speeds_rad_s
+        for k in range(1, len(speeds)):
+            a, b = float(speeds[k - 1]), float(speeds[k])
+            if abs(a) <= tol or abs(b) <= tol:
+                continue
+            if (motors.stop_before_reversing and a * b < 0) or (
+                    motors.max_speed_change is not None and a * b > 0 and abs(b - a) / abs(a) > motors.max_speed_change * (1 + 1e-9)):
+                found.append(float(t_knot[k]))
+    merged: list[float] = []
+    for t in sorted(found):
+        if not merged or t - merged[-1] > TIME_ROUND_S:
+            merged.append(t)
+    return merged
+
+
+def _paused(joints: dict[tuple[int, int], JointProfile], pause_times: list[float], pause_s: float) -> dict[tuple[int, int], JointProfile]:
+    """Every joint's profile with everyone holding still for ``pause_s`` at each of ``pause_times``
+    (times of the profiles before pausing): a joint in a segment there is split, holds, and goes
+    on at the same speed; a joint that has not started starts later; one that has finished holds.
+    Every configuration is one the profiles pass through, held: the positions at each instant of
+    the paused profiles are those of the profiles at an earlier instant, for everyone alike."""
+    out: dict[tuple[int, int], JointProfile] = {}
+    for key, prof in joints.items():
+        edges = prof.start_s + np.concatenate([[0.0], np.cumsum(prof.durations_s)])
+        durations: list[float] = []
+        speeds: list[float] = []
+        pending = [t for t in pause_times if t > prof.start_s + TIME_ROUND_S]
+        start_s = prof.start_s + pause_s * (len(pause_times) - len(pending))  # pauses before its start: it starts later
+        for d, v, t0, t1 in zip(prof.durations_s.tolist(), prof.speeds_rad_s.tolist(), edges[:-1].tolist(), edges[1:].tolist(), strict=True):
+            cut = t0
+            while pending and pending[0] < t1 - TIME_ROUND_S:  # a pause inside this segment (or at its start)
+                t = pending.pop(0)
+                if t - cut > TIME_ROUND_S:
+                    durations.append(t - cut)
+                    speeds.append(v)
+                durations.append(pause_s)
+                speeds.append(0.0)
+                cut = t
+            durations.append(t1 - cut if cut > t0 else d)
+            speeds.append(v)
+        out[key] = _trimmed(start_s, prof.start_rad, np.array(durations), np.array(speeds))
+    return out
 
 
 class _Fitter:
