@@ -467,8 +467,9 @@ def _paths_run(paths_file: Path, scenario_file: Path | None) -> Any:
 @click.option("--fraction", type=click.FloatRange(0.0, 1.0, min_open=True, max_open=True), default=0.5, show_default=True,
               help="Share of each pair's planned clearance the profiles may use.")
 @click.option("--pauses/--no-pauses", default=True, show_default=True,
-              help="Where a joint would still reverse without a stop or jump in speed beyond the motors' limit, everyone holds "
-                   "still for one sample step (the makespan grows by the pauses).")
+              help="Mend what the fit leaves of the motor limits: creeps below the minimum speed move at the minimum and wait; "
+                   "where a joint would reverse without a stop or jump in speed, everyone holds still for one sample step "
+                   "(the makespan grows by the pauses).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON summary.")
 def profiles(run_file: Path, out: Path, form: str | None, fraction: float, pauses: bool, as_json: bool) -> None:
     """Turn a verified trajectory file into motor profiles: per positioner and joint, a few
@@ -499,9 +500,9 @@ def profiles(run_file: Path, out: Path, form: str | None, fraction: float, pause
     unstated = [k for k, v in limits.items() if v is None]
     if unstated:
         click.echo(f"  not stated by the instrument (unconstrained): {', '.join(unstated)}")
-    if summary["pauses"]:
-        click.echo(f"  {summary['pauses']} pause(s) of everyone, {summary['pause_s']:.2f} s in all: where a joint would reverse without "
-                   "a stop or jump in speed (--no-pauses: leave them, reported as motor-limit violations)")
+    if summary["pauses"] or summary["creeps_mended"]:
+        click.echo(f"  {summary['creeps_mended']} creep(s) mended, {summary['pauses']} pause(s) of everyone ({summary['pause_s']:.2f} s in all) "
+                   "where a joint would creep, reverse without a stop or jump in speed (--no-pauses: leave them, reported)")
     if summary["followed_samples"]:
         click.echo(f"  positioners following their planned samples (narrower fits failed the verifier): {summary['followed_samples']}")
     if summary["motor_violations"]:

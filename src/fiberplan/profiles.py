@@ -22,10 +22,11 @@ algorithm and its guarantee are in ``formulations/profiles.md``; in short:
    and passed through the independent verifier. Positioners in a collision are fitted again in
    a corridor four times narrower, twice; then they follow their verified planned samples.
    What cannot be verified is refused (:class:`~fiberplan.errors.ProfileError`), never exported.
-4. **Pauses.** Where a joint would still reverse without a stop or jump in speed beyond the
-   motors' limit, every positioner holds still for one sample step at that instant (a stop and a
-   start are exempt from both limits; a held configuration is one already verified), and the
-   result is verified again.
+4. **Creeps and pauses.** A segment still below the minimum speed becomes a move at the minimum
+   and a hold (:func:`_mend_creeps`); where a joint would still reverse without a stop or jump in
+   speed beyond the motors' limit, every positioner holds still for one sample step at that
+   instant (:func:`_paused`: a stop and a start are exempt from both limits; a held
+   configuration is one already verified). The result is verified again.
 """
 
 from __future__ import annotations
@@ -194,9 +195,11 @@ def discretise_trajectory(
         trajectory: a trajectory the verifier passes (a plan result's, or anyone's).
         fraction: the share ``f`` of each pair's planned clearance the profiles may use (0, 1).
         instrument: the instrument whose limits apply (default: the scenario's).
-        pauses: where a joint's profile still reverses without a stop or changes speed by more
-            than the motors allow, every positioner holds still for one sample step (or command
-            period) at that instant (:func:`_paused`): the makespan grows by the pauses.
+        pauses: mend what the fit leaves of the motor limits: a creep below the minimum speed
+            becomes a move at the minimum and a hold (:func:`_mend_creeps`); where a joint still
+            reverses without a stop or changes speed by more than the motors allow, every
+            positioner holds still for one sample step (or command period) at that instant
+            (:func:`_paused`): the makespan grows by the pauses.
 
     Returns:
         :class:`Profiles` with ``report.ok`` true.
@@ -243,24 +246,32 @@ def discretise_trajectory(
             else:
                 fitter.narrow(scenario.index_of(ident))
     pause_times: list[float] = []
+    mended = 0
     pause_s = max(float(np.min(np.diff(times))) if len(times) > 1 else 0.0, inst.motors.command_period_s or 0.0)
-    if pauses and report.motors_checked and pause_s > 0.0:
-        pause_times = _pause_times(profiles.joints, inst.motors)
-        if pause_times:
-            paused = Profiles(scenario, _paused(profiles.joints, pause_times, pause_s))
+    if pauses and report.motors_checked and report.motor_violations and pause_s > 0.0:
+        # Creeps first (they may add transitions), then pauses; the first variant the verifier passes is kept.
+        variants = [True, False] if inst.motors.min_speed_rad_s is not None and inst.motors.command_period_s is None else [False]
+        for creeps in variants:
+            joints_now, n_mended = _mend_creeps(profiles.joints, inst.motors) if creeps else (profiles.joints, 0)
+            if creeps and not n_mended:
+                continue
+            times_now = _pause_times(joints_now, inst.motors)
+            if not times_now and not n_mended:
+                break
+            candidate = Profiles(scenario, _paused(joints_now, times_now, pause_s) if times_now else joints_now)
             checked = time.perf_counter()
-            paused_rebuilt = paused.trajectory()
-            paused_report = verify(scenario, paused_rebuilt, instrument=inst)
+            candidate_rebuilt = candidate.trajectory()
+            candidate_report = verify(scenario, candidate_rebuilt, instrument=inst)
             verify_s += time.perf_counter() - checked
-            if paused_report.ok:  # a held configuration is one the profiles had: clear, but checked all the same
-                profiles, rebuilt, report = paused, paused_rebuilt, paused_report
-            else:
-                pause_times = []
+            if candidate_report.ok:  # held configurations are the profiles' own; a mended creep moves a hair: checked
+                profiles, rebuilt, report, pause_times, mended = candidate, candidate_rebuilt, candidate_report, times_now, n_mended
+                break
     stats = {
         "limits": limits_applied(inst),
         "fraction": fraction,
         "pauses": len(pause_times),
         "pause_s": pause_s * len(pause_times),
+        "creeps_mended": mended,
         "refit_rounds": rounds,
         "followed_samples": sorted(set(followed)),
         "relaxed_segments": int(fitter.relaxed.sum()),
@@ -293,6 +304,39 @@ def _pause_times(joints: dict[tuple[int, int], JointProfile], motors: MotorLimit
         if not merged or t - merged[-1] > TIME_ROUND_S:
             merged.append(t)
     return merged
+
+
+_CREEP_MIN_S = 1e-3  # a creep is mended only if its move at the minimum speed lasts at least this long
+_CREEP_MARGIN = 1e-6  # the mended move runs this much above the minimum speed (rounding of the rebuilt grid)
+
+
+def _mend_creeps(joints: dict[tuple[int, int], JointProfile], motors: MotorLimits) -> tuple[dict[tuple[int, int], JointProfile], int]:
+    """Every moving segment slower than the motors' minimum becomes a move at the minimum speed
+    (a hair above) over the same angle, then a hold to the segment's end: the joint arrives early
+    and waits, never farther from its profile than the creep's own angle. Returns the profiles
+    and the number of segments changed (the speed changes this adds are left to the pauses)."""
+    assert motors.min_speed_rad_s is not None
+    out: dict[tuple[int, int], JointProfile] = {}
+    count = 0
+    for (i, axis), prof in joints.items():
+        low = motors.min_speed_rad_s[axis] * (1.0 + _CREEP_MARGIN)
+        durations: list[float] = []
+        speeds: list[float] = []
+        changed = 0
+        starts, _ = prof.knots()
+        for d, v, t0 in zip(prof.durations_s.tolist(), prof.speeds_rad_s.tolist(), starts[:-1].tolist(), strict=True):
+            # The arrival lands on the rebuilt trajectory's time grid (TIME_ROUND_S), so the hold after it stays still there.
+            move = round((t0 + d * abs(v) / low) / TIME_ROUND_S) * TIME_ROUND_S - t0
+            if v != 0.0 and abs(v) < motors.min_speed_rad_s[axis] * (1 - 1e-9) and _CREEP_MIN_S <= move < d:
+                durations += [move, d - move]
+                speeds += [v * d / move, 0.0]  # the same angle, at the minimum speed (a hair above)
+                changed += 1
+            else:
+                durations.append(d)
+                speeds.append(v)
+        out[(i, axis)] = _trimmed(prof.start_s, prof.start_rad, np.array(durations), np.array(speeds)) if changed else prof
+        count += changed
+    return out, count
 
 
 def _paused(joints: dict[tuple[int, int], JointProfile], pause_times: list[float], pause_s: float) -> dict[tuple[int, int], JointProfile]:
