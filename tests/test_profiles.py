@@ -375,3 +375,18 @@ def test_pauses_and_mended_creeps_leave_no_motor_violation():
         t_new, q_new = prof.knots()
         t_old, q_old = mended[key].knots()
         np.testing.assert_allclose(np.interp(tau, t_new, q_new), np.interp(mapped(tau), t_old, q_old), atol=1e-9, err_msg=str(key))
+
+
+def test_cli_no_pauses_leaves_the_violations_reported(tmp_path, run_cli):
+    """``--no-pauses`` is honoured: the same run exported with the violations the fit left, reported."""
+    run = tmp_path / "m.h5"
+    fp.save_result(fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 3), "mpc", {"motor_limits": False}), run)
+    results = {}
+    for flag in ("--pauses", "--no-pauses"):
+        code, out, _ = run_cli(["profiles", str(run), "--out", str(tmp_path / f"p{flag}.json"), "--json", flag])
+        assert code == 0
+        results[flag] = json.loads(out)
+    assert results["--pauses"]["pauses"] > 0 and results["--pauses"]["motor_violations"] == 0
+    assert results["--no-pauses"]["pauses"] == 0 and results["--no-pauses"]["creeps_mended"] == 0
+    assert results["--no-pauses"]["motor_violations"] > 0
+    assert results["--no-pauses"]["makespan_after_s"] < results["--pauses"]["makespan_after_s"]
