@@ -87,6 +87,9 @@ def measure(planner: str, instrument: str, n: int, kind: str, seed: int, motor_l
         "motor_violations": summary["motor_violations"],
         "makespan_before_s": summary["makespan_before_s"],
         "makespan_after_s": summary["makespan_after_s"],
+        "pauses": summary.get("pauses", 0),
+        "creeps_mended": summary.get("creeps_mended", 0),
+        "joints_over_128_segments": int(np.count_nonzero(moving > 128)),
         "reached": fp.summarize(result)["reached"],
     }
 
@@ -118,6 +121,9 @@ def aggregate(rows: list[dict]) -> list[dict]:
             "runs_with_motor_violations": sum(v > 0 for v in violations) if violations else None,
             "motor_violations_total": sum(violations) if violations else None,
             "makespan_increase_median": float(np.median(increase)) if increase else None,
+            "makespan_increase_max": float(np.max(increase)) if increase else None,
+            "runs_with_pauses": sum(bool(r.get("pauses")) for r in ok),
+            "runs_with_joints_over_128_segments": sum(bool(r.get("joints_over_128_segments")) for r in ok),
             "discretise_over_plan_median": float(np.median(share)) if share else None,
             "discretise_s_median": float(np.median([r["discretise_s"] for r in ok])) if ok else None,
             "plan_wall_s_median": float(np.median([r["plan_wall_s"] for r in group])),
