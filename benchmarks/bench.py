@@ -129,6 +129,8 @@ def _seed_list(text: str) -> list[int]:
 
 def cmd_compare(args: argparse.Namespace) -> None:
     from fiberplan.studies import run_compare
+    from fiberplan.studies.analysis import aggregate
+    from fiberplan.studies.compare import CompareResult
 
     name = args.name or f"central_{args.instrument}_{args.n}"
     if (RESULTS / f"{name}.json").exists() and not args.overwrite:  # checked before hours of solving
@@ -139,10 +141,15 @@ def cmd_compare(args: argparse.Namespace) -> None:
         planner, setting_name = key.split(".", 1)
         settings.setdefault(planner, {})[setting_name] = json.loads(raw)
     seeds = _seed_list(args.seed_list) if args.seed_list else list(range(args.seeds))
-    result = run_compare(args.instrument, args.n, args.planners.split(","), seeds, kind=args.kind, settings=settings,
-                         energy_gap=args.energy_gap)
-    path = write_summary(name, {"command": " ".join(["python", "benchmarks/bench.py", *sys.argv[1:]])} | result.to_dict())
-    print(f"wrote {path}")
+    command = " ".join(["python", "benchmarks/bench.py", *sys.argv[1:]])
+    rows: list[dict[str, Any]] = []
+    for done, seed in enumerate(seeds, start=1):  # one seed at a time, the file written after each: a stopped run keeps its seeds
+        part = run_compare(args.instrument, args.n, args.planners.split(","), [seed], kind=args.kind, settings=settings,
+                           energy_gap=args.energy_gap)
+        rows.extend(part.rows)
+        result = CompareResult(rows=rows, aggregates=aggregate(rows), parameters=part.parameters | {"seeds": seeds[:done]})
+        path = write_summary(name, {"command": command, "complete": done == len(seeds)} | result.to_dict())
+        print(f"seed {seed} ({done} of {len(seeds)}) -> {path}", flush=True)
 
 
 def main() -> None:
