@@ -247,7 +247,7 @@ def discretise_trajectory(
                 fitter.narrow(scenario.index_of(ident))
     pause_times: list[float] = []
     mended = 0
-    pause_s = max(float(np.min(np.diff(times))) if len(times) > 1 else 0.0, inst.motors.command_period_s or 0.0)
+    pause_s = max(float(np.median(np.diff(times))) if len(times) > 1 else 0.0, inst.motors.command_period_s or 0.0)  # one sample step
     if pauses and report.motors_checked and report.motor_violations and pause_s > 0.0:
         # Creeps first (they may add transitions), then pauses; the first variant the verifier passes is kept.
         variants = [True, False] if inst.motors.min_speed_rad_s is not None and inst.motors.command_period_s is None else [False]
