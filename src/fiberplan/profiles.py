@@ -283,22 +283,27 @@ def discretise_trajectory(
     return Profiles(scenario, profiles.joints, report, stats)
 
 
+_MOVING = 1e-9  # rad/s: the verifier's threshold of a moving command
+
+
+def _breaks(a: float, b: float, motors: MotorLimits) -> bool:
+    """Whether a moving segment at speed ``b`` right after one at ``a`` breaks the motors' limits:
+    a reversal without a stop (``stop_before_reversing``) or a speed change beyond
+    ``max_speed_change`` of the first (a stop or a start between them is exempt from both)."""
+    if abs(a) <= _MOVING or abs(b) <= _MOVING:
+        return False
+    return (motors.stop_before_reversing and a * b < 0) or (
+        motors.max_speed_change is not None and a * b > 0 and abs(b - a) / abs(a) > motors.max_speed_change * (1 + 1e-9))
+
+
 def _pause_times(joints: dict[tuple[int, int], JointProfile], motors: MotorLimits) -> list[float]:
-    """The breakpoints (s) where some joint's consecutive moving segments reverse without a stop
-    (``stop_before_reversing``) or change speed by more than ``max_speed_change`` of the first:
-    what a stop of everyone there mends (a stop and a start are exempt from both)."""
+    """The breakpoints (s) where some joint's consecutive moving segments break the motors'
+    limits (:func:`_breaks`): what a stop of everyone there mends."""
     found: list[float] = []
-    tol = 1e-9  # the verifier's threshold of a moving command
     for prof in joints.values():
         t_knot, _ = prof.knots()
-        speeds = prof.speeds_rad_s
-        for k in range(1, len(speeds)):
-            a, b = float(speeds[k - 1]), float(speeds[k])
-            if abs(a) <= tol or abs(b) <= tol:
-                continue
-            if (motors.stop_before_reversing and a * b < 0) or (
-                    motors.max_speed_change is not None and a * b > 0 and abs(b - a) / abs(a) > motors.max_speed_change * (1 + 1e-9)):
-                found.append(float(t_knot[k]))
+        speeds = prof.speeds_rad_s.tolist()
+        found += [float(t_knot[k]) for k in range(1, len(speeds)) if _breaks(speeds[k - 1], speeds[k], motors)]
     merged: list[float] = []
     for t in sorted(found):
         if not merged or t - merged[-1] > TIME_ROUND_S:
