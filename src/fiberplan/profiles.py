@@ -729,15 +729,13 @@ def _fit_joint(
     hi = np.minimum(q + band, stops[1] + _TOL)
     lo[k0], hi[k0], lo[k1], hi[k1] = q[k0], q[k0], q[k1], q[k1]
     _reachable(lo, hi, times, top, k0, k1)
+    cor = _Corridor(times, q, lo, hi, k0, k1, step, top, motors, axis, search[0])
     p0 = float(q[k0])
-    dt = times[k0 + 1:k1 + 1] - times[k0]
-    s_lo, s_hi = float(np.max((lo[k0 + 1:k1 + 1] - p0) / dt)), float(np.min((hi[k0 + 1:k1 + 1] - p0) / dt))
-    if ONE_SEGMENT_SHORTCUTS and s_lo <= s_hi + _TOL and any(max(s_lo, a) <= min(s_hi, b) + _TOL for a, b in _allowed_speeds(0.0, top, motors, axis)):
+    if ONE_SEGMENT_SHORTCUTS and _reaches_end(cor, k0, p0, 0.0):
         # One segment fits: the search's first option (the farthest end, here the last), taken directly.
         durations = np.diff(times[[k0, k1]])
         return _trimmed(float(times[k0]), p0, durations, np.diff(np.array([p0, float(q[k1])])) / durations), 0
-    cor = _Corridor(times, q, lo, hi, k0, k1, step, top, motors, axis, search[0])
-    stack = [_Node(k0, float(q[k0]), 0.0, _options(cor, k0, float(q[k0]), 0.0))]
+    stack = [_Node(k0, p0, 0.0, _options(cor, k0, p0, 0.0))]
     tried = 0
     while stack and stack[-1].k < k1 and tried < search[1]:
         node = stack[-1]
@@ -747,6 +745,10 @@ def _fit_joint(
         m, s = node.options.pop(0)
         tried += 1
         p = float(q[k1]) if m == k1 else node.p + s * float(times[m] - times[node.k])
+        if m < k1 and ONE_SEGMENT_SHORTCUTS and tried < search[1] and _reaches_end(cor, m, p, s):
+            # The search's next step from here would be that last segment (its farthest option): taken directly.
+            stack += [_Node(m, p, s, []), _Node(k1, float(q[k1]), 0.0, [])]
+            break
         stack.append(_Node(m, p, s, _options(cor, m, p, s) if m < k1 else []))
     if stack and stack[-1].k == k1:
         knots = [(node.k, node.speed) for node in stack[1:]]
@@ -805,6 +807,16 @@ def _cone(cor: _Corridor, k: int, p: float) -> tuple[np.ndarray, np.ndarray, np.
         if len(cand) == 0:
             cand = np.flatnonzero(on_grid)[:1]
     return js[cand], s_lo[cand], s_hi[cand], (cor.q[js[cand]] - p) / dt[cand]
+
+
+def _reaches_end(cor: _Corridor, k: int, p: float, prev: float) -> bool:
+    """Whether one segment from angle ``p`` at sample ``k`` reaches the last sample's angle inside
+    the corridor at a speed the motors accept after ``prev``: exactly when :func:`_options` would
+    offer the last sample first (the cone only narrows, so its last extent decides)."""
+    window = slice(k + 1, cor.k1 + 1)
+    dt = cor.times[window] - cor.times[k]
+    s_lo, s_hi = float(np.max((cor.lo[window] - p) / dt)), float(np.min((cor.hi[window] - p) / dt))
+    return s_lo <= s_hi + _TOL and any(max(s_lo, a) <= min(s_hi, b) + _TOL for a, b in _allowed_speeds(prev, cor.top, cor.motors, cor.axis))
 
 
 def _options(cor: _Corridor, k: int, p: float, prev: float) -> list[tuple[int, float]]:
