@@ -390,3 +390,17 @@ def test_cli_no_pauses_leaves_the_violations_reported(tmp_path, run_cli):
     assert results["--no-pauses"]["pauses"] == 0 and results["--no-pauses"]["creeps_mended"] == 0
     assert results["--no-pauses"]["motor_violations"] > 0
     assert results["--no-pauses"]["makespan_after_s"] < results["--pauses"]["makespan_after_s"]
+
+
+def test_knots_of_one_segment_are_the_sums():
+    """The one-segment shortcut of ``JointProfile.knots`` gives the running sums' values, bit for bit."""
+    from fiberplan.profiles import JointProfile
+
+    rng = np.random.default_rng(5)
+    for _ in range(500):
+        n = int(rng.integers(1, 3))
+        prof = JointProfile(float(rng.uniform(-1, 10)), float(rng.uniform(-3, 3)), rng.uniform(0.01, 5, n), rng.uniform(-0.3, 0.3, n))
+        times, angles = prof.knots()
+        np.testing.assert_array_equal(times, prof.start_s + np.concatenate([[0.0], np.cumsum(prof.durations_s)]))
+        np.testing.assert_array_equal(angles, prof.start_rad + np.concatenate([[0.0], np.cumsum(prof.speeds_rad_s * prof.durations_s)]))
+        assert not times.flags.writeable

@@ -84,8 +84,13 @@ class JointProfile:
 
     @functools.cached_property
     def _knots(self) -> tuple[np.ndarray, np.ndarray]:
-        times = self.start_s + np.concatenate([[0.0], np.cumsum(self.durations_s)])
-        angles = self.start_rad + np.concatenate([[0.0], np.cumsum(self.speeds_rad_s * self.durations_s)])
+        if len(self.durations_s) == 1:  # most joints: the same values as the sums below, without their cost
+            d = float(self.durations_s[0])
+            times = np.array([self.start_s + 0.0, self.start_s + d])
+            angles = np.array([self.start_rad + 0.0, self.start_rad + float(self.speeds_rad_s[0]) * d])
+        else:
+            times = self.start_s + np.concatenate([[0.0], np.cumsum(self.durations_s)])
+            angles = self.start_rad + np.concatenate([[0.0], np.cumsum(self.speeds_rad_s * self.durations_s)])
         times.flags.writeable = False
         angles.flags.writeable = False
         return times, angles
