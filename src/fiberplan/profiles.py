@@ -534,13 +534,15 @@ class _Room:
         near[1:] = np.minimum(near[1:], clear[:-1])
         near[:-1] = np.minimum(near[:-1], clear[1:])
         self.clear = np.maximum(near, 0.0)  # (T, P)
-        self.shared = fraction * self.clear
+        self.shared_t = np.ascontiguousarray((fraction * self.clear).T)  # (P, T): f c, a pair's samples contiguous
         self.still = np.all(joints == joints[:1], axis=(0, 2))  # (N,) never moves
         self.deviation = np.zeros((n_t, n))  # (T, N) motion bound of each fitted profile's deviation
         ends = np.concatenate([np.arange(len(pairs)), np.arange(len(pairs))])
         owner = pairs.T.ravel()  # the positioner at each pair end, first ends then second
         order = np.lexsort((ends, owner))
-        self.of = np.split(ends[order], np.searchsorted(owner[order], np.arange(1, n)))  # per positioner, its pair rows, ascending
+        self._rows = ends[order]  # every positioner's pair rows, ascending, positioner after positioner
+        self._offsets = np.searchsorted(owner[order], np.arange(n + 1))  # positioner i's rows: _rows[_offsets[i]:_offsets[i + 1]]
+        self.of = np.split(self._rows, self._offsets[1:-1])  # per positioner, its pair rows
 
     def _others(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         rows = self.of[i]
@@ -554,38 +556,40 @@ class _Room:
         """``(T,)``: half of each pair's room (all of it next to a positioner that never moves)."""
         rows, other = self._others(i)
         if len(rows) == 0:
-            return np.full(self.shared.shape[0], np.inf)
-        return (self.shared[:, rows] * np.where(self.still[other], 1.0, 0.5)).min(axis=1)
+            return np.full(self.shared_t.shape[1], np.inf)
+        return (self.shared_t[rows] * np.where(self.still[other], 1.0, 0.5)[:, None]).min(axis=0)
 
     def half_bound(self) -> np.ndarray:
         """``(T, N)``: an upper bound on :meth:`half` of every positioner, from its closest
         pair alone (the one whose planned clearance falls lowest); infinite without pairs."""
-        n_t, n = self.shared.shape[0], len(self.still)
+        n_t, n = self.shared_t.shape[1], len(self.still)
         out = np.full((n_t, n), np.inf)
         if len(self.pairs) == 0:
             return out
         low = self.clear.min(axis=0)  # (P,)
-        rows = np.array([r[np.argmin(low[r])] if len(r) else -1 for r in self.of])
-        has = np.flatnonzero(rows >= 0)
-        other = np.where(self.pairs[rows[has], 0] == has, self.pairs[rows[has], 1], self.pairs[rows[has], 0])
-        out[:, has] = self.shared[:, rows[has]] * np.where(self.still[other], 1.0, 0.5)
+        owner = np.repeat(np.arange(n), np.diff(self._offsets))
+        first = np.lexsort((low[self._rows], owner))[self._offsets[:-1][np.diff(self._offsets) > 0]]  # closest row of each
+        has = owner[first]
+        rows = self._rows[first]
+        other = np.where(self.pairs[rows, 0] == has, self.pairs[rows, 1], self.pairs[rows, 0])
+        out[:, has] = (self.shared_t[rows] * np.where(self.still[other], 1.0, 0.5)[:, None]).T
         return out
 
     def half_of(self, idx: np.ndarray) -> np.ndarray:
         """``(T, len(idx))``: :meth:`half` of the positioners ``idx`` at once (the same values)."""
-        n_t = self.shared.shape[0]
+        n_t = self.shared_t.shape[1]
         out = np.full((n_t, len(idx)), np.inf)
-        rows = [self.of[i] for i in idx.tolist()]
-        sizes = np.array([len(r) for r in rows], dtype=int)
-        if sizes.sum() == 0:
+        sizes = self._offsets[idx + 1] - self._offsets[idx]
+        total = int(sizes.sum())
+        if total == 0:
             return out
-        rows_all = np.concatenate(rows)
+        starts_all = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        rows_all = self._rows[np.arange(total) - np.repeat(starts_all, sizes) + np.repeat(self._offsets[idx], sizes)]
         owner = np.repeat(idx, sizes)
         other = np.where(self.pairs[rows_all, 0] == owner, self.pairs[rows_all, 1], self.pairs[rows_all, 0])
-        values = self.shared[:, rows_all] * np.where(self.still[other], 1.0, 0.5)
+        values = self.shared_t[rows_all] * np.where(self.still[other], 1.0, 0.5)[:, None]  # (rows, T)
         has = np.flatnonzero(sizes)
-        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])[has]
-        out[:, has] = np.minimum.reduceat(values, starts, axis=1)
+        out[:, has] = np.minimum.reduceat(values, starts_all[has], axis=0).T
         return out
 
     def left(self, i: int, fraction: float) -> np.ndarray:
@@ -593,7 +597,7 @@ class _Room:
         recorded deviation."""
         rows, other = self._others(i)
         if len(rows) == 0:
-            return np.full(self.shared.shape[0], np.inf)
+            return np.full(self.shared_t.shape[1], np.inf)
         return np.maximum((fraction * self.clear[:, rows] - self.deviation[:, other]).min(axis=1), 0.0)
 
     def record(self, i: int, fits: dict[tuple[int, int], JointProfile], times: np.ndarray, q: np.ndarray, refine: int = 1) -> None:
