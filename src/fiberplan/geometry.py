@@ -119,7 +119,6 @@ def capsule_coordinates(
             origin_x + end_mm * dir_x - end_y * dir_y, origin_y + end_mm * dir_y + end_y * dir_x)
 
 
-
 def point_to_segment(
     px: np.ndarray, py: np.ndarray, ax: np.ndarray, ay: np.ndarray, dx: np.ndarray, dy: np.ndarray,
     nonzero: np.ndarray, safe_dd: np.ndarray,
