@@ -23,6 +23,7 @@ histogram of segments per moving joint (``segments_hist``: count -> joints).
 from __future__ import annotations
 
 import argparse
+import collections
 import datetime as dt
 import json
 import sys
@@ -85,6 +86,7 @@ def measure(planner: str, instrument: str, n: int, kind: str, seed: int, motor_l
         "verified_ok": summary["verified_ok"],
         "followed_samples": len(summary["followed_samples"]),
         "motor_violations": summary["motor_violations"],
+        "motor_violation_kinds": dict(collections.Counter(v.kind for v in made.report.motor_violations)) if made.report else {},
         "makespan_before_s": summary["makespan_before_s"],
         "makespan_after_s": summary["makespan_after_s"],
         "pauses": summary.get("pauses", 0),
