@@ -530,11 +530,13 @@ class _Room:
         self.rho = point_extents(inst)
         self.pairs = pairs
         n_t, n = joints.shape[0], joints.shape[1]
-        near = clear.copy()
-        near[1:] = np.minimum(near[1:], clear[:-1])
-        near[:-1] = np.minimum(near[:-1], clear[1:])
-        self.clear = np.maximum(near, 0.0)  # (T, P)
-        self.shared_t = np.ascontiguousarray((fraction * self.clear).T)  # (P, T): f c, a pair's samples contiguous
+        clear_t = np.ascontiguousarray(clear.T)  # (P, T): a pair's samples contiguous
+        near = clear_t.copy()
+        np.minimum(near[:, 1:], clear_t[:, :-1], out=near[:, 1:])
+        np.minimum(near[:, :-1], clear_t[:, 1:], out=near[:, :-1])
+        np.maximum(near, 0.0, out=near)
+        self.clear = near.T  # (T, P), a view
+        self.shared_t = fraction * near  # (P, T): f c
         self.still = np.all(joints == joints[:1], axis=(0, 2))  # (N,) never moves
         self.deviation = np.zeros((n_t, n))  # (T, N) motion bound of each fitted profile's deviation
         ends = np.concatenate([np.arange(len(pairs)), np.arange(len(pairs))])
