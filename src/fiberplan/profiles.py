@@ -357,7 +357,7 @@ def _paused(joints: dict[tuple[int, int], JointProfile], pause_times: list[float
     the paused profiles are those of the profiles at an earlier instant, for everyone alike."""
     out: dict[tuple[int, int], JointProfile] = {}
     for key, prof in joints.items():
-        edges = prof.start_s + np.concatenate([[0.0], np.cumsum(prof.durations_s)])
+        edges, _ = prof.knots()
         durations: list[float] = []
         speeds: list[float] = []
         pending = [t for t in pause_times if t > prof.start_s + TIME_ROUND_S]
@@ -520,9 +520,9 @@ class _Room:
     """How far (mm, motion bound) each positioner may leave its planned path at each sample.
 
     A pair ``(i, j)`` shares ``f c_ij``, with ``c_ij`` its planned clearance at the sample and
-    its two neighbours (as the verifier measured it on the planned trajectory: exact where the
-    pair's enclosing discs are within 2 mm, that gap, a lower bound, beyond) (the deviation is linear between samples, so a sample's room covers both
-    intervals). :meth:`half` gives ``i`` half of it (all of it when ``j`` never moves);
+    its two neighbours (the deviation is linear between samples, so a sample's room covers both
+    intervals), as the verifier measured it on the planned trajectory (exact where the pair's
+    enclosing discs are within 2 mm, that gap, a lower bound, beyond). :meth:`half` gives ``i`` half of it (all of it when ``j`` never moves);
     :meth:`left` what ``j``'s profile, as fitted so far, leaves (:meth:`record`).
     """
 
@@ -544,10 +544,9 @@ class _Room:
         order = np.lexsort((ends, owner))
         self._rows = ends[order]  # every positioner's pair rows, ascending, positioner after positioner
         self._offsets = np.searchsorted(owner[order], np.arange(n + 1))  # positioner i's rows: _rows[_offsets[i]:_offsets[i + 1]]
-        self.of = np.split(self._rows, self._offsets[1:-1])  # per positioner, its pair rows
 
     def _others(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        rows = self.of[i]
+        rows = self._rows[self._offsets[i]:self._offsets[i + 1]]
         return rows, np.where(self.pairs[rows, 0] == i, self.pairs[rows, 1], self.pairs[rows, 0])
 
     def neighbours(self, i: int) -> np.ndarray:
