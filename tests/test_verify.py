@@ -50,13 +50,37 @@ def test_the_report_does_not_depend_on_the_time_chunk(monkeypatch):
     collided = []
     for trajectory in (plan(sc, "straight").trajectory, plan(sc, "dnf").trajectory):
         reports = [verify(sc, trajectory, time_chunk=chunk) for chunk in (1, 3, 64)]
-        monkeypatch.setattr(verify_module, "CHUNK_PAIR_SAMPLES", 2 * len(sc.pairs))  # the default: 2 samples at a time
+        monkeypatch.setattr(verify_module, "CHUNK_PAIR_SAMPLES", 2 * verify_module.THREADS * len(sc.pairs))  # 2 samples at a time
         reports.append(verify(sc, trajectory))
         monkeypatch.undo()
         first = dataclasses.asdict(reports[0])
         assert all(dataclasses.asdict(r) == first for r in reports[1:])
         assert reports[0].probes > 0
         collided.append(reports[0].n_collisions > 0)
+    assert collided == [True, False]
+
+
+@pytest.mark.parametrize("instrument", ["sdss", "moons"])
+def test_the_report_and_clearances_do_not_depend_on_the_threads(monkeypatch, instrument):
+    # Chunks of samples, and the pairs' intervals to bisect, are shared between threads
+    # (verify.THREADS): the same report, bit for bit, and the same clearance table as on one thread.
+    import dataclasses
+    import importlib
+
+    verify_module = importlib.import_module("fiberplan.verify")
+    sc = make_scenario(instrument, 19, "random", 1)
+    collided = []
+    for trajectory in (plan(sc, "straight").trajectory, plan(sc, "dnf").trajectory):
+        found = []
+        for threads in (1, 3):
+            monkeypatch.setattr(verify_module, "THREADS", threads)
+            monkeypatch.setattr(verify_module, "_THREADED_INTERVALS", 0)  # split even a few intervals
+            report, pairs, clear = verify_module.verify_with_clearances(sc, trajectory, time_chunk=5)
+            found.append((dataclasses.asdict(report), pairs, clear))
+        (first, pairs, clear), (again, pairs_again, clear_again) = found
+        assert first == again and first["probes"] > 0
+        assert np.array_equal(pairs, pairs_again) and np.array_equal(clear, clear_again)
+        collided.append(bool(first["collisions"]))
     assert collided == [True, False]
 
 

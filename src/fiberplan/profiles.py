@@ -530,8 +530,8 @@ class _Room:
         self.rho = point_extents(inst)
         self.pairs = pairs
         n_t, n = joints.shape[0], joints.shape[1]
-        clear_t = np.ascontiguousarray(clear.T)  # (P, T): a pair's samples contiguous
-        near = clear_t.copy()
+        clear_t = np.ascontiguousarray(clear.T)  # (P, T): a pair's samples contiguous (no copy from the verifier)
+        near = clear_t.copy()  # each sample's clearance and its two neighbours'
         np.minimum(near[:, 1:], clear_t[:, :-1], out=near[:, 1:])
         np.minimum(near[:, :-1], clear_t[:, 1:], out=near[:, :-1])
         np.maximum(near, 0.0, out=near)
@@ -741,11 +741,12 @@ def _fit_joint(
     _reachable(lo, hi, times, top, k0, k1)
     cor = _Corridor(times, q, lo, hi, k0, k1, step, top, motors, axis, search[0])
     p0 = float(q[k0])
-    if ONE_SEGMENT_SHORTCUTS and _reaches_end(cor, k0, p0, 0.0):
+    cone = _cone(cor, k0, p0)
+    if ONE_SEGMENT_SHORTCUTS and _reaches_end(cor, cone, 0.0):
         # One segment fits: the search's first option (the farthest end, here the last), taken directly.
         durations = np.diff(times[[k0, k1]])
         return _trimmed(float(times[k0]), p0, durations, np.diff(np.array([p0, float(q[k1])])) / durations), 0
-    stack = [_Node(k0, p0, 0.0, _options(cor, k0, p0, 0.0))]
+    stack = [_Node(k0, p0, 0.0, _options(cor, k0, p0, 0.0, cone))]
     tried = 0
     while stack and stack[-1].k < k1 and tried < search[1]:
         node = stack[-1]
@@ -755,11 +756,15 @@ def _fit_joint(
         m, s = node.options.pop(0)
         tried += 1
         p = float(q[k1]) if m == k1 else node.p + s * float(times[m] - times[node.k])
-        if m < k1 and ONE_SEGMENT_SHORTCUTS and tried < search[1] and _reaches_end(cor, m, p, s):
+        if m == k1:
+            stack.append(_Node(m, p, s, []))
+            continue
+        cone = _cone(cor, m, p)
+        if ONE_SEGMENT_SHORTCUTS and tried < search[1] and _reaches_end(cor, cone, s):
             # The search's next step from here would be that last segment (its farthest option): taken directly.
             stack += [_Node(m, p, s, []), _Node(k1, float(q[k1]), 0.0, [])]
             break
-        stack.append(_Node(m, p, s, _options(cor, m, p, s) if m < k1 else []))
+        stack.append(_Node(m, p, s, _options(cor, m, p, s, cone)))
     if stack and stack[-1].k == k1:
         knots = [(node.k, node.speed) for node in stack[1:]]
         ks = np.array([k0] + [k for k, _ in knots])
@@ -799,9 +804,10 @@ class _Node:
     options: list[tuple[int, float]]
 
 
-def _cone(cor: _Corridor, k: int, p: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _cone(cor: _Corridor, k: int, p: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:
     """From angle ``p`` at sample ``k``: the candidate breakpoint samples, and at each the
-    speeds ``[s_lo, s_hi]`` that keep a segment in the corridor, and the speed back onto the path."""
+    speeds ``[s_lo, s_hi]`` that keep a segment in the corridor, and the speed back onto the
+    path; last, those speeds for a segment to the window's end (the cone's last extent)."""
     window = slice(k + 1, cor.k1 + 1)
     dt = cor.times[window] - cor.times[k]
     s_lo = np.maximum.accumulate((cor.lo[window] - p) / dt)
@@ -816,23 +822,22 @@ def _cone(cor: _Corridor, k: int, p: float) -> tuple[np.ndarray, np.ndarray, np.
         cand = np.flatnonzero(on_grid[:open_])
         if len(cand) == 0:
             cand = np.flatnonzero(on_grid)[:1]
-    return js[cand], s_lo[cand], s_hi[cand], (cor.q[js[cand]] - p) / dt[cand]
+    return js[cand], s_lo[cand], s_hi[cand], (cor.q[js[cand]] - p) / dt[cand], float(s_lo[-1]), float(s_hi[-1])
 
 
-def _reaches_end(cor: _Corridor, k: int, p: float, prev: float) -> bool:
-    """Whether one segment from angle ``p`` at sample ``k`` reaches the last sample's angle inside
-    the corridor at a speed the motors accept after ``prev``: exactly when :func:`_options` would
+def _reaches_end(cor: _Corridor, cone: tuple[Any, ...], prev: float) -> bool:
+    """Whether one segment from the cone's apex reaches the last sample's angle inside the
+    corridor at a speed the motors accept after ``prev``: exactly when :func:`_options` would
     offer the last sample first (the cone only narrows, so its last extent decides)."""
-    window = slice(k + 1, cor.k1 + 1)
-    dt = cor.times[window] - cor.times[k]
-    s_lo, s_hi = float(np.max((cor.lo[window] - p) / dt)), float(np.min((cor.hi[window] - p) / dt))
+    s_lo, s_hi = cone[4], cone[5]
     return s_lo <= s_hi + _TOL and any(max(s_lo, a) <= min(s_hi, b) + _TOL for a, b in _allowed_speeds(prev, cor.top, cor.motors, cor.axis))
 
 
-def _options(cor: _Corridor, k: int, p: float, prev: float) -> list[tuple[int, float]]:
+def _options(cor: _Corridor, k: int, p: float, prev: float, cone: tuple[Any, ...] | None = None) -> list[tuple[int, float]]:
     """Up to ``cor.branches`` next segments ``(end sample, speed)`` the motors accept after ``prev``
-    and the corridor holds: farthest end first, then the speed nearest the path."""
-    ends, s_lo, s_hi, aim = _cone(cor, k, p)
+    and the corridor holds (from ``cone``, :func:`_cone` at ``k, p``, if given): farthest end
+    first, then the speed nearest the path."""
+    ends, s_lo, s_hi, aim, _, _ = _cone(cor, k, p) if cone is None else cone
     found: list[tuple[int, float, float]] = []
     for a, b in _allowed_speeds(prev, cor.top, cor.motors, cor.axis):
         lo = np.maximum(s_lo, a)
@@ -858,7 +863,7 @@ def _relaxed_fit(cor: _Corridor) -> tuple[np.ndarray, np.ndarray, int]:
             m, s = opts[0]
         else:
             relaxed += 1
-            ends, s_lo, s_hi, aim = _cone(cor, k, p)
+            ends, s_lo, s_hi, aim, _, _ = _cone(cor, k, p)
             m, s = int(ends[0]), float(np.clip(np.clip(aim[0], s_lo[0], s_hi[0]), -cor.top, cor.top))
         p = float(cor.q[cor.k1]) if m == cor.k1 else p + s * float(cor.times[m] - cor.times[k])
         k, prev = m, s
@@ -900,25 +905,6 @@ def _reachable(lo: np.ndarray, hi: np.ndarray, times: np.ndarray, top: float, k0
     window = slice(k0, k1 + 1)
     lo[window] = travel + np.maximum.accumulate((lo[window] - travel)[::-1])[::-1]
     hi[window] = -travel + np.minimum.accumulate((hi[window] + travel)[::-1])[::-1]
-
-
-def _farthest(
-    cand: np.ndarray, g_lo: np.ndarray, g_hi: np.ndarray, allowed: list[tuple[float, float]], aim: np.ndarray,
-) -> tuple[int, float] | None:
-    """The farthest candidate whose slope cone ``[g_lo, g_hi]`` meets an allowed speed, and there
-    the allowed speed nearest ``aim`` (the slope back onto the planned path)."""
-    best_c, best_s = -1, 0.0
-    for a, b in allowed:
-        lo = np.maximum(g_lo, a)
-        hi = np.minimum(g_hi, b)
-        ok = np.flatnonzero(lo <= hi + _TOL)
-        if len(ok) == 0:
-            continue
-        c = int(ok[-1])
-        s = float(np.clip(aim[c], lo[c], max(lo[c], hi[c])))
-        if c > best_c or (c == best_c and abs(s - aim[c]) < abs(best_s - aim[c])):
-            best_c, best_s = c, s
-    return None if best_c < 0 else (int(cand[best_c]), best_s)
 
 
 def _follow_samples(times: np.ndarray, q: np.ndarray, fits: dict[tuple[int, int], JointProfile], i: int) -> None:

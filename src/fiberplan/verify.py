@@ -25,7 +25,9 @@ against the preset shipped with fiberplan).
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -43,6 +45,7 @@ _ANGLE_TOL = 1e-9
 _SPEED_REL_TOL = 1e-6
 _MAX_BISECTIONS = 40
 _PRUNE_MM = 2.0  # pairs whose enclosing discs are this far apart skip the exact distance
+_THREADED_INTERVALS = 20_000  # intervals to bisect from which the pairs are split between threads
 
 
 @dataclass(frozen=True)
@@ -161,6 +164,19 @@ class VerificationReport:
 CHUNK_PAIR_SAMPLES = 1_000_000
 """Pair-samples the verifier takes at once by default (memory: a few hundred bytes each)."""
 
+THREADS = min(2, os.cpu_count() or 1)
+"""Chunks the verifier works on at once: numpy releases the GIL inside its array operations,
+so two threads check a large trajectory in a little over half the time (the report does not
+depend on it: each chunk writes its own rows, and collisions are recorded in chunk order)."""
+
+
+def _chunk_map(func: Callable[[int], Any], starts: range) -> list[Any]:
+    """``[func(k0) for k0 in starts]``, on :data:`THREADS` threads when there is more than one chunk."""
+    if THREADS <= 1 or len(starts) <= 1:
+        return [func(k0) for k0 in starts]
+    with ThreadPoolExecutor(max_workers=THREADS) as pool:
+        return list(pool.map(func, starts))
+
 
 def verify(
     scenario: Scenario, trajectory: Trajectory, *, fraction: float = 0.5, time_chunk: int | None = None, instrument: Instrument | None = None,
@@ -173,8 +189,9 @@ def verify(
         fraction: bisect each inter-sample interval until no point moves more than this
             fraction of the clearance between two checks (0 < fraction < 1).
         time_chunk: samples processed at once (memory bound for large N); default: 64, fewer
-            on a field of more than 15,625 neighbour pairs, so that a chunk holds about a
-            million pair-samples (:data:`CHUNK_PAIR_SAMPLES`). The report does not depend on it.
+            on a large field, so that the chunks in work at once (one per thread,
+            :data:`THREADS`) hold about a million pair-samples in all
+            (:data:`CHUNK_PAIR_SAMPLES`). The report does not depend on it.
         instrument: check against this geometry and these limits instead of the scenario's.
 
     Returns:
@@ -213,7 +230,7 @@ def _verify(
         raise TrajectoryError(f"trajectory has {n} positioners, scenario has {scenario.n_positioners}")
     pairs = neighbour_pairs(inst, scenario.base_xy)
     if time_chunk is None:
-        time_chunk = max(1, min(64, CHUNK_PAIR_SAMPLES // max(1, len(pairs))))
+        time_chunk = max(1, min(64, CHUNK_PAIR_SAMPLES // THREADS // max(1, len(pairs))))  # the same memory on every thread count
     report = VerificationReport(n_positioners=n, n_samples=n_t, n_pairs=len(pairs))
     ids = scenario.ids
     _check_finite(scenario, trajectory, report)
@@ -248,27 +265,35 @@ def _verify(
     # Clearances at every sample, chunk by chunk. A pair whose enclosing discs are more than
     # ``_PRUNE_MM`` apart cannot be closer than that: its clearance is replaced by that lower
     # bound, which only makes the checks between samples more cautious.
-    sample_clear = np.empty((n_t, len(pairs)))
+    sample_clear = np.empty((len(pairs), n_t)).T  # (T, P), a pair's samples contiguous (as the motor profiles read them)
     radii = np.array([c.radius_mm for c in inst.capsules])
-    report.probes = 0
-    for k0 in range(0, n_t, time_chunk):
+
+    def sample_chunk(k0: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+        """Samples ``k0`` to ``k0 + time_chunk`` into ``sample_clear`` (rows no other chunk
+        writes); returns what ``record`` needs, recorded afterwards in chunk order."""
         k1 = min(n_t, k0 + time_chunk)
         lower = _enclosing_disc_gap(inst, scenario.base_xy, scenario.orient, joints[k0:k1], pairs, radii)
-        sample_clear[k0:k1] = lower
         near_t, near_p = np.nonzero(lower < _PRUNE_MM)
         if len(near_t) == 0:
-            continue
+            sample_clear[k0:k1] = lower
+            return 0, near_t, near_p, np.empty((0, len(combos)))
         i_rows, j_rows = pairs[near_p, 0], pairs[near_p, 1]
         exact = clearance_between(
             inst,
             scenario.base_xy[i_rows], scenario.orient[i_rows], joints[k0 + near_t, i_rows],
             scenario.base_xy[j_rows], scenario.orient[j_rows], joints[k0 + near_t, j_rows],
         )
-        report.probes += len(near_t)
-        sample_clear[k0 + near_t, near_p] = exact.min(axis=1)
-        hit = exact.min(axis=1) < 0.0
-        if np.any(hit):
-            record(near_p[hit], times[k0 + near_t[hit]], exact[hit])
+        nearest = exact.min(axis=1)
+        lower[near_t, near_p] = nearest
+        sample_clear[k0:k1] = lower
+        hit = nearest < 0.0
+        return len(near_t), k0 + near_t[hit], near_p[hit], exact[hit]
+
+    report.probes = 0
+    for probes, t_hit, p_hit, exact_hit in _chunk_map(sample_chunk, range(0, n_t, time_chunk)):
+        report.probes += probes
+        if len(p_hit):
+            record(p_hit, times[t_hit], exact_hit)
     if report.non_finite:
         report.min_clearance_mm = float(np.min(sample_clear, where=np.isfinite(sample_clear), initial=np.inf))
     else:  # every sample finite: so is every clearance (no copy of the whole table)
@@ -305,8 +330,8 @@ def _between_samples(
     both ends, until each piece is proven clear (the motion bound of :mod:`fiberplan.planners.safety`)
     or found colliding (``record``). The intervals to bisect are found ``time_chunk`` at a time."""
     rho = point_extents(inst)
-    found: list[tuple[np.ndarray, ...]] = []
-    for k0 in range(0, len(joints) - 1, time_chunk):
+
+    def intervals(k0: int) -> tuple[np.ndarray, ...]:
         k1 = min(len(joints) - 1, k0 + time_chunk)
         motion = motion_bound(rho, np.abs(joints[k0 + 1:k1 + 1] - joints[k0:k1]))  # (chunk, N)
         bound = motion[:, pairs[:, 0]] + motion[:, pairs[:, 1]]  # (chunk, P)
@@ -314,47 +339,66 @@ def _between_samples(
         both = np.minimum(c0, c1)  # NaN where either is unknown; >= 0 where neither collides
         needs = (bound > fraction * both) & (both >= 0.0)  # then bound > 0 too
         kk, pp = np.nonzero(needs)
-        found.append((kk + k0, pp, c0[kk, pp], c1[kk, pp], bound[kk, pp]))
+        return kk + k0, pp, c0[kk, pp], c1[kk, pp], bound[kk, pp]
+
+    found = _chunk_map(intervals, range(0, len(joints) - 1, time_chunk))
     k_idx, p_idx, clo, chi, bnd = (np.concatenate(parts) for parts in zip(*found, strict=True))
-    lo = np.zeros(len(k_idx))
-    hi = np.ones(len(k_idx))
-    for _ in range(_MAX_BISECTIONS):
-        if len(k_idx) == 0:
-            break
-        mid = 0.5 * (lo + hi)
-        i_rows, j_rows = pairs[p_idx, 0], pairs[p_idx, 1]
-        q_i = (1 - mid)[:, None] * joints[k_idx, i_rows] + mid[:, None] * joints[k_idx + 1, i_rows]
-        q_j = (1 - mid)[:, None] * joints[k_idx, j_rows] + mid[:, None] * joints[k_idx + 1, j_rows]
-        clear_k = clearance_between(
-            inst,
-            scenario.base_xy[i_rows], scenario.orient[i_rows], q_i,
-            scenario.base_xy[j_rows], scenario.orient[j_rows], q_j,
-        )
-        cmid = clear_k.min(axis=1)
-        report.probes += len(cmid)
-        t_mid = times[k_idx] + mid * (times[k_idx + 1] - times[k_idx])
-        report.min_clearance_mm = min(report.min_clearance_mm, float(np.nanmin(cmid, initial=np.inf)))
-        hit = cmid < 0.0
-        if np.any(hit):
-            record(p_idx[hit], t_mid[hit], clear_k[hit])
-        # Split every surviving piece in two halves with half the motion bound.
-        half = 0.5 * bnd
-        keep = ~hit
-        new_k = np.concatenate([k_idx[keep], k_idx[keep]])
-        new_p = np.concatenate([p_idx[keep], p_idx[keep]])
-        new_lo = np.concatenate([lo[keep], mid[keep]])
-        new_hi = np.concatenate([mid[keep], hi[keep]])
-        new_clo = np.concatenate([clo[keep], cmid[keep]])
-        new_chi = np.concatenate([cmid[keep], chi[keep]])
-        new_b = np.concatenate([half[keep], half[keep]])
-        still = new_b > fraction * np.minimum(new_clo, new_chi)
-        k_idx, p_idx, lo, hi = new_k[still], new_p[still], new_lo[still], new_hi[still]
-        clo, chi, bnd = new_clo[still], new_chi[still], new_b[still]
-        # Pairs already known to collide need no further probing.
-        if worst and len(p_idx):
-            known = np.isin(p_idx, np.fromiter(worst.keys(), dtype=np.int64))
-            k_idx, p_idx, lo, hi = k_idx[~known], p_idx[~known], lo[~known], hi[~known]
-            clo, chi, bnd = clo[~known], chi[~known], bnd[~known]
+    known = np.fromiter(worst.keys(), dtype=np.int64)
+
+    def bisect(group: np.ndarray) -> tuple[int, float, list[tuple[np.ndarray, ...]]]:
+        """Bisect the intervals ``group``; returns the probes, the smallest clearance probed and
+        the collisions found, in order. The groups split the pairs: a pair's pieces are probed
+        in the same order whichever group it is in, and only its own hits stop its probing."""
+        k_idx, p_idx, c_lo, c_hi, bnd = k_all[group], p_all[group], clo[group], chi[group], bnd_all[group]
+        lo = np.zeros(len(k_idx))
+        hi = np.ones(len(k_idx))
+        probes, smallest, hits = 0, np.inf, []
+        colliding = known
+        for _ in range(_MAX_BISECTIONS):
+            if len(k_idx) == 0:
+                break
+            mid = 0.5 * (lo + hi)
+            i_rows, j_rows = pairs[p_idx, 0], pairs[p_idx, 1]
+            q_i = (1 - mid)[:, None] * joints[k_idx, i_rows] + mid[:, None] * joints[k_idx + 1, i_rows]
+            q_j = (1 - mid)[:, None] * joints[k_idx, j_rows] + mid[:, None] * joints[k_idx + 1, j_rows]
+            clear_k = clearance_between(
+                inst,
+                scenario.base_xy[i_rows], scenario.orient[i_rows], q_i,
+                scenario.base_xy[j_rows], scenario.orient[j_rows], q_j,
+            )
+            cmid = clear_k.min(axis=1)
+            probes += len(cmid)
+            smallest = min(smallest, float(np.nanmin(cmid, initial=np.inf)))
+            hit = cmid < 0.0
+            if np.any(hit):
+                t_mid = times[k_idx] + mid * (times[k_idx + 1] - times[k_idx])
+                hits.append((p_idx[hit], t_mid[hit], clear_k[hit]))
+                colliding = np.union1d(colliding, p_idx[hit])
+            # Split every surviving piece in two halves with half the motion bound.
+            half = 0.5 * bnd
+            keep = ~hit
+            new_k = np.concatenate([k_idx[keep], k_idx[keep]])
+            new_p = np.concatenate([p_idx[keep], p_idx[keep]])
+            new_lo = np.concatenate([lo[keep], mid[keep]])
+            new_hi = np.concatenate([mid[keep], hi[keep]])
+            new_clo = np.concatenate([c_lo[keep], cmid[keep]])
+            new_chi = np.concatenate([cmid[keep], c_hi[keep]])
+            new_b = np.concatenate([half[keep], half[keep]])
+            still = new_b > fraction * np.minimum(new_clo, new_chi)
+            # Pairs already known to collide need no further probing.
+            if len(colliding):
+                still &= ~np.isin(new_p, colliding)
+            k_idx, p_idx, lo, hi = new_k[still], new_p[still], new_lo[still], new_hi[still]
+            c_lo, c_hi, bnd = new_clo[still], new_chi[still], new_b[still]
+        return probes, smallest, hits
+
+    k_all, p_all, bnd_all = k_idx, p_idx, bnd
+    groups = [np.arange(len(k_all))] if len(k_all) < _THREADED_INTERVALS else [np.flatnonzero(p_all % THREADS == g) for g in range(THREADS)]
+    for probes, smallest, hits in _chunk_map(lambda g: bisect(groups[g]), range(len(groups))):
+        report.probes += probes
+        report.min_clearance_mm = min(report.min_clearance_mm, smallest)
+        for p_hit, t_hit, clear_hit in hits:
+            record(p_hit, t_hit, clear_hit)
 
 
 def _enclosing_disc_gap(
