@@ -814,14 +814,15 @@ def _cone(cor: _Corridor, k: int, p: float) -> tuple[np.ndarray, np.ndarray, np.
     s_hi = np.minimum.accumulate((cor.hi[window] - p) / dt)
     closed = s_lo > s_hi + _TOL  # from its first True on (the cone only narrows)
     open_ = int(np.argmax(closed)) if closed[-1] else len(dt)
+    if cor.step == 1:  # every sample up to the cone's closing (at least the next)
+        n = max(open_, 1)
+        return (np.arange(k + 1, k + 1 + n), s_lo[:n], s_hi[:n], (cor.q[k + 1:k + 1 + n] - p) / dt[:n],
+                float(s_lo[-1]), float(s_hi[-1]))
     js = np.arange(k + 1, cor.k1 + 1)
-    if cor.step == 1:
-        cand = np.arange(max(open_, 1))
-    else:
-        on_grid = ((js - cor.k0) % cor.step == 0) | (js == cor.k1)
-        cand = np.flatnonzero(on_grid[:open_])
-        if len(cand) == 0:
-            cand = np.flatnonzero(on_grid)[:1]
+    on_grid = ((js - cor.k0) % cor.step == 0) | (js == cor.k1)
+    cand = np.flatnonzero(on_grid[:open_])
+    if len(cand) == 0:
+        cand = np.flatnonzero(on_grid)[:1]
     return js[cand], s_lo[cand], s_hi[cand], (cor.q[js[cand]] - p) / dt[cand], float(s_lo[-1]), float(s_hi[-1])
 
 
