@@ -50,7 +50,7 @@ def test_the_report_does_not_depend_on_the_time_chunk(monkeypatch):
     collided = []
     for trajectory in (plan(sc, "straight").trajectory, plan(sc, "dnf").trajectory):
         reports = [verify(sc, trajectory, time_chunk=chunk) for chunk in (1, 3, 64)]
-        monkeypatch.setattr(verify_module, "CHUNK_PAIR_SAMPLES", 2 * verify_module.THREADS * len(sc.pairs))  # 2 samples at a time
+        monkeypatch.setattr(verify_module, "CHUNK_PAIR_SAMPLES", 2 * len(sc.pairs))  # the default: 2 samples at a time (one thread)
         reports.append(verify(sc, trajectory))
         monkeypatch.undo()
         first = dataclasses.asdict(reports[0])
@@ -75,6 +75,7 @@ def test_the_report_and_clearances_do_not_depend_on_the_threads(monkeypatch, ins
         for threads in (1, 3):
             monkeypatch.setattr(verify_module, "THREADS", threads)
             monkeypatch.setattr(verify_module, "_THREADED_INTERVALS", 0)  # split even a few intervals
+            monkeypatch.setattr(verify_module, "THREADED_PAIR_SAMPLES", 0)  # and a small trajectory's chunks
             report, pairs, clear = verify_module.verify_with_clearances(sc, trajectory, time_chunk=5)
             found.append((dataclasses.asdict(report), pairs, clear))
         (first, pairs, clear), (again, pairs_again, clear_again) = found

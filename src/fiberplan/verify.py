@@ -170,9 +170,15 @@ so two threads check a large trajectory in a little over half the time (the repo
 depend on it: each chunk writes its own rows, and collisions are recorded in chunk order)."""
 
 
-def _chunk_map(func: Callable[[int], Any], starts: range) -> list[Any]:
-    """``[func(k0) for k0 in starts]``, on :data:`THREADS` threads when there is more than one chunk."""
-    if THREADS <= 1 or len(starts) <= 1:
+THREADED_PAIR_SAMPLES = 1_000_000
+"""Pair-samples (samples x neighbour pairs) from which a trajectory is checked on :data:`THREADS`
+threads: below, one thread is faster (the threads would wait on each other for the GIL between
+small array operations; DESI 7 took 14 ms on two threads against 2.5 ms on one)."""
+
+
+def _chunk_map(func: Callable[[int], Any], starts: range, threaded: bool) -> list[Any]:
+    """``[func(k0) for k0 in starts]``, on :data:`THREADS` threads if ``threaded`` and there is more than one chunk."""
+    if not threaded or THREADS <= 1 or len(starts) <= 1:
         return [func(k0) for k0 in starts]
     with ThreadPoolExecutor(max_workers=THREADS) as pool:
         return list(pool.map(func, starts))
@@ -229,8 +235,9 @@ def _verify(
     if n != scenario.n_positioners:
         raise TrajectoryError(f"trajectory has {n} positioners, scenario has {scenario.n_positioners}")
     pairs = neighbour_pairs(inst, scenario.base_xy)
-    if time_chunk is None:
-        time_chunk = max(1, min(64, CHUNK_PAIR_SAMPLES // THREADS // max(1, len(pairs))))  # the same memory on every thread count
+    threaded = n_t * len(pairs) >= THREADED_PAIR_SAMPLES
+    if time_chunk is None:  # the same memory on every thread count
+        time_chunk = max(1, min(64, CHUNK_PAIR_SAMPLES // (THREADS if threaded else 1) // max(1, len(pairs))))
     report = VerificationReport(n_positioners=n, n_samples=n_t, n_pairs=len(pairs))
     ids = scenario.ids
     _check_finite(scenario, trajectory, report)
@@ -290,7 +297,7 @@ def _verify(
         return len(near_t), k0 + near_t[hit], near_p[hit], exact[hit]
 
     report.probes = 0
-    for probes, t_hit, p_hit, exact_hit in _chunk_map(sample_chunk, range(0, n_t, time_chunk)):
+    for probes, t_hit, p_hit, exact_hit in _chunk_map(sample_chunk, range(0, n_t, time_chunk), threaded):
         report.probes += probes
         if len(p_hit):
             record(p_hit, times[t_hit], exact_hit)
@@ -301,7 +308,7 @@ def _verify(
 
     # Between samples: bisect the intervals whose motion bound is not small against the clearance.
     if n_t > 1:
-        _between_samples(inst, scenario, joints, times, pairs, sample_clear, fraction, report, record, worst, time_chunk)
+        _between_samples(inst, scenario, joints, times, pairs, sample_clear, fraction, report, record, worst, time_chunk, threaded)
 
     for p, (t_first, t_worst, value, k) in sorted(worst.items(), key=lambda item: item[1][0]):
         i, j = pairs[p]
@@ -324,7 +331,7 @@ def _verify(
 def _between_samples(
     inst: Instrument, scenario: Scenario, joints: np.ndarray, times: np.ndarray, pairs: np.ndarray, sample_clear: np.ndarray,
     fraction: float, report: VerificationReport, record: Callable[[np.ndarray, np.ndarray, np.ndarray], None],
-    worst: dict[int, list[float]], time_chunk: int,
+    worst: dict[int, list[float]], time_chunk: int, threaded: bool,
 ) -> None:
     """Bisect every interval whose pairs' motion bound is not small against their clearance at
     both ends, until each piece is proven clear (the motion bound of :mod:`fiberplan.planners.safety`)
@@ -341,7 +348,7 @@ def _between_samples(
         kk, pp = np.nonzero(needs)
         return kk + k0, pp, c0[kk, pp], c1[kk, pp], bound[kk, pp]
 
-    found = _chunk_map(intervals, range(0, len(joints) - 1, time_chunk))
+    found = _chunk_map(intervals, range(0, len(joints) - 1, time_chunk), threaded)
     k_idx, p_idx, clo, chi, bnd = (np.concatenate(parts) for parts in zip(*found, strict=True))
     known = np.fromiter(worst.keys(), dtype=np.int64)
 
@@ -394,7 +401,7 @@ def _between_samples(
 
     k_all, p_all, bnd_all = k_idx, p_idx, bnd
     groups = [np.arange(len(k_all))] if len(k_all) < _THREADED_INTERVALS else [np.flatnonzero(p_all % THREADS == g) for g in range(THREADS)]
-    for probes, smallest, hits in _chunk_map(lambda g: bisect(groups[g]), range(len(groups))):
+    for probes, smallest, hits in _chunk_map(lambda g: bisect(groups[g]), range(len(groups)), threaded):
         report.probes += probes
         report.min_clearance_mm = min(report.min_clearance_mm, smallest)
         for p_hit, t_hit, clear_hit in hits:
