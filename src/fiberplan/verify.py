@@ -349,14 +349,14 @@ def _between_samples(
         return kk + k0, pp, c0[kk, pp], c1[kk, pp], bound[kk, pp]
 
     found = _chunk_map(intervals, range(0, len(joints) - 1, time_chunk), threaded)
-    k_idx, p_idx, clo, chi, bnd = (np.concatenate(parts) for parts in zip(*found, strict=True))
-    known = np.fromiter(worst.keys(), dtype=np.int64)
+    k_all, p_all, clo_all, chi_all, bnd_all = (np.concatenate(parts) for parts in zip(*found, strict=True))
+    known = np.fromiter(worst.keys(), dtype=np.int64)  # pairs already found colliding at the samples
 
     def bisect(group: np.ndarray) -> tuple[int, float, list[tuple[np.ndarray, ...]]]:
         """Bisect the intervals ``group``; returns the probes, the smallest clearance probed and
         the collisions found, in order. The groups split the pairs: a pair's pieces are probed
         in the same order whichever group it is in, and only its own hits stop its probing."""
-        k_idx, p_idx, c_lo, c_hi, bnd = k_all[group], p_all[group], clo[group], chi[group], bnd_all[group]
+        k_idx, p_idx, c_lo, c_hi, bnd = k_all[group], p_all[group], clo_all[group], chi_all[group], bnd_all[group]
         lo = np.zeros(len(k_idx))
         hi = np.ones(len(k_idx))
         probes, smallest, hits = 0, np.inf, []
@@ -399,7 +399,6 @@ def _between_samples(
             c_lo, c_hi, bnd = new_clo[still], new_chi[still], new_b[still]
         return probes, smallest, hits
 
-    k_all, p_all, bnd_all = k_idx, p_idx, bnd
     groups = [np.arange(len(k_all))] if len(k_all) < _THREADED_INTERVALS else [np.flatnonzero(p_all % THREADS == g) for g in range(THREADS)]
     for probes, smallest, hits in _chunk_map(lambda g: bisect(groups[g]), range(len(groups)), threaded):
         report.probes += probes
