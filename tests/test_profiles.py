@@ -337,6 +337,29 @@ def test_the_one_segment_shortcuts_give_the_searchs_profiles(instrument, kind, p
     np.testing.assert_array_equal(fast.trajectory().joints, searched.trajectory().joints)
 
 
+def test_wider_corridors_are_tried_where_the_pauses_leave_motor_violations(monkeypatch):
+    """A stop-and-go plan (the dnf's, MOONS 61 unfold seed 16) whose profiles in half of each
+    pair's clearance keep motor-limit violations after the pauses (joints with more than 128
+    moving segments): the fit is made again in wider shares of the clearances, the verified
+    profiles with the fewest violations are kept, and they are the ones that share gives alone."""
+    import fiberplan.profiles as profiles_module
+
+    run = fp.plan(fp.make_scenario("moons", 61, "unfold", 16), "dnf")
+    kept = fp.discretise(run)
+    monkeypatch.setattr(profiles_module, "WIDER_FRACTIONS", ())
+    narrow = fp.discretise(run)
+    alone = fp.discretise(run, fraction=kept.stats["fraction"])
+    assert narrow.stats["fractions_tried"] == [profiles_module.DEFAULT_FRACTION]
+    assert len(narrow.report.motor_violations) > 0  # the case this test is about
+    assert kept.report.ok and kept.stats["fractions_tried"][0] == profiles_module.DEFAULT_FRACTION
+    assert kept.stats["fraction"] in kept.stats["fractions_tried"][1:]
+    assert len(kept.report.motor_violations) < len(narrow.report.motor_violations)
+    assert kept.joints.keys() == alone.joints.keys()
+    for key, prof in alone.joints.items():
+        np.testing.assert_array_equal(kept.joints[key].durations_s, prof.durations_s)
+        np.testing.assert_array_equal(kept.joints[key].speeds_rad_s, prof.speeds_rad_s)
+
+
 def test_pauses_and_mended_creeps_leave_no_motor_violation():
     """Where the fitted profiles still creep below the minimum speed, the joint moves at the
     minimum and waits (never farther from its profile than the creep's angle); where they
@@ -351,6 +374,7 @@ def test_pauses_and_mended_creeps_leave_no_motor_violation():
     paused = fp.discretise(run)
     assert {"reversal", "speed_change", "min_speed"} <= {v.kind for v in plain.report.motor_violations}  # the case this test is about
     assert paused.report.ok and paused.report.motors_checked and paused.report.motor_violations == []
+    assert paused.stats["fractions_tried"] == [profiles_module.DEFAULT_FRACTION]  # nothing left to widen for
     mended, n_mended = profiles_module._mend_creeps(plain.joints, motors)
     stats = paused.stats
     assert stats["creeps_mended"] == n_mended > 0

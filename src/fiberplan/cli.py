@@ -465,7 +465,8 @@ def _paths_run(paths_file: Path, scenario_file: Path | None) -> Any:
 @click.option("--format", "form", type=click.Choice(["h5", "json", "csv", "points"]), default=None,
               help="Export form (default: from the extension); points = time-stamped angle points (JSON).")
 @click.option("--fraction", type=click.FloatRange(0.0, 1.0, min_open=True, max_open=True), default=0.5, show_default=True,
-              help="Share of each pair's planned clearance the profiles may use.")
+              help="Share of each pair's planned clearance the profiles may use (where the pauses leave motor-limit "
+                   "violations, wider shares, 0.7 and 0.9, are tried too and the profiles with the fewest kept).")
 @click.option("--pauses/--no-pauses", default=True, show_default=True,
               help="Mend what the fit leaves of the motor limits: creeps below the minimum speed move at the minimum and wait; "
                    "where a joint would reverse without a stop or jump in speed, everyone holds still for one sample step "

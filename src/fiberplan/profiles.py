@@ -58,6 +58,7 @@ ONE_SEGMENT_SHORTCUTS = True  # joints one segment fits skip the search (all at 
 REFIT_PASSES = 1  # passes over the positioners that break a motor limit
 ALPHA_SHARES = (0.5, 0.75)  # splits of a refitted positioner's room between alpha and beta
 REFIT_FRACTION = 0.9  # share of a pair's planned clearance a positioner refitted after breaking a motor limit may use
+WIDER_FRACTIONS = (0.7, 0.9)  # shares of the planned clearances tried in turn where the pauses leave motor-limit violations
 REFINE = 5  # a positioner that breaks a motor limit is fitted again with this many breakpoint instants per sample interval
 _TOL = 1e-12
 
@@ -204,7 +205,10 @@ def discretise_trajectory(
             becomes a move at the minimum and a hold (:func:`_mend_creeps`); where a joint still
             reverses without a stop or changes speed by more than the motors allow, every
             positioner holds still for one sample step (or command period) at that instant
-            (:func:`_paused`): the makespan grows by the pauses.
+            (:func:`_paused`): the makespan grows by the pauses. Where violations are still
+            left, the fit is made again in wider shares of the planned clearances
+            (:data:`WIDER_FRACTIONS`: fewer breakpoints to mend) and the verified profiles with
+            the fewest violations are kept (``stats["fraction"]``, ``stats["fractions_tried"]``).
 
     Returns:
         :class:`Profiles` with ``report.ok`` true.
@@ -226,6 +230,34 @@ def discretise_trajectory(
             f"{len(source.limit_violations)} limit violation(s), {source.n_non_finite_samples} non-finite sample(s): "
             "run `fiberplan verify` on it"
         )
+    best: tuple[dict[tuple[int, int], JointProfile], VerificationReport, dict[str, Any]] | None = None
+    tried: list[float] = []
+    for f in (fraction, *(w for w in WIDER_FRACTIONS if w > fraction)):
+        try:
+            joints, report, stats, verify_f = _attempt(scenario, trajectory, inst, pairs, clear, f, pauses)
+        except ProfileError:
+            if best is None:
+                raise
+            continue  # a wider corridor whose profiles cannot be verified: the narrower ones stand
+        tried.append(f)
+        verify_s += verify_f
+        if best is None or len(report.motor_violations) < len(best[1].motor_violations):
+            best = (joints, report, stats)
+        if not (pauses and report.motors_checked and report.motor_violations):
+            break  # wider corridors are tried only where the pauses leave motor-limit violations
+    assert best is not None
+    joints, report, stats = best
+    stats |= {"fractions_tried": tried, "discretise_s": time.perf_counter() - started, "of_which_verify_s": verify_s}
+    return Profiles(scenario, joints, report, stats)
+
+
+def _attempt(
+    scenario: Scenario, trajectory: Trajectory, inst: Instrument, pairs: np.ndarray, clear: np.ndarray, fraction: float, pauses: bool,
+) -> tuple[dict[tuple[int, int], JointProfile], VerificationReport, dict[str, Any], float]:
+    """One fit of every positioner in the share ``fraction`` of its planned clearances (``clear``,
+    the verifier's, at ``pairs``), refitted until verified, then mended (``pauses``): the
+    verified profiles, their report, their statistics and the time spent verifying."""
+    verify_s = 0.0
     times, joints = trajectory.times, trajectory.joints
     fitter = _Fitter(inst, times, joints, _period_steps(inst.motors, times), _Room(inst, joints, pairs, clear, fraction))
     fitter.fit_all(fraction)
@@ -282,10 +314,8 @@ def discretise_trajectory(
         "relaxed_segments": int(fitter.relaxed.sum()),
         "makespan_before_s": _makespan(times, joints),
         "makespan_after_s": _makespan(rebuilt.times, rebuilt.joints),
-        "discretise_s": time.perf_counter() - started,
-        "of_which_verify_s": verify_s,
     }
-    return Profiles(scenario, profiles.joints, report, stats)
+    return profiles.joints, report, stats, verify_s
 
 
 _MOVING = 1e-9  # rad/s: the verifier's threshold of a moving command
