@@ -399,7 +399,8 @@ def _between_samples(
             c_lo, c_hi, bnd = new_clo[still], new_chi[still], new_b[still]
         return probes, smallest, hits
 
-    groups = [np.arange(len(k_all))] if len(k_all) < _THREADED_INTERVALS else [np.flatnonzero(p_all % THREADS == g) for g in range(THREADS)]
+    split = threaded and len(k_all) >= _THREADED_INTERVALS  # one group per thread, by pair
+    groups = [np.flatnonzero(p_all % THREADS == g) for g in range(THREADS)] if split else [np.arange(len(k_all))]
     for probes, smallest, hits in _chunk_map(lambda g: bisect(groups[g]), range(len(groups)), threaded):
         report.probes += probes
         report.min_clearance_mm = min(report.min_clearance_mm, smallest)
