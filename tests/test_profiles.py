@@ -360,18 +360,21 @@ def test_wider_corridors_are_tried_where_the_pauses_leave_motor_violations(monke
         np.testing.assert_array_equal(kept.joints[key].speeds_rad_s, prof.speeds_rad_s)
 
 
-def test_pauses_and_mended_creeps_leave_no_motor_violation():
+def test_pauses_and_mended_creeps_leave_no_motor_violation(monkeypatch):
     """Where the fitted profiles still creep below the minimum speed, the joint moves at the
     minimum and waits (never farther from its profile than the creep's angle); where they
     reverse without a stop or jump in speed, everyone holds still for one sample step: no motor
     violation is left on this run, and the rest of the motion is the same, retimed (each joint's
-    angle at a paused instant is its angle at the mapped instant before)."""
+    angle at a paused instant is its angle at the mapped instant before). Joints running through
+    the pauses inside their segments (:data:`STRETCH_PAUSES`) are tested below."""
     import fiberplan.profiles as profiles_module
 
     run = fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 3), "mpc", {"motor_limits": False})
     motors = run.scenario.instrument.motors
     plain = fp.discretise(run, pauses=False)
+    monkeypatch.setattr(profiles_module, "STRETCH_PAUSES", False)
     paused = fp.discretise(run)
+    assert paused.stats["pauses_run_through"] == 0
     assert {"reversal", "speed_change", "min_speed"} <= {v.kind for v in plain.report.motor_violations}  # the case this test is about
     assert paused.report.ok and paused.report.motors_checked and paused.report.motor_violations == []
     assert paused.stats["fractions_tried"] == [profiles_module.DEFAULT_FRACTION]  # nothing left to widen for
@@ -401,6 +404,38 @@ def test_pauses_and_mended_creeps_leave_no_motor_violation():
         t_new, q_new = prof.knots()
         t_old, q_old = mended[key].knots()
         np.testing.assert_allclose(np.interp(tau, t_new, q_new), np.interp(mapped(tau), t_old, q_old), atol=1e-9, err_msg=str(key))
+
+
+def test_joints_run_through_the_pauses_where_the_motors_allow(monkeypatch):
+    """A joint moving through a pause need not stop with everyone: running the piece between two
+    holds a little slower over the paused span keeps every motor limit and leaves it at the same
+    angle as the paused profiles at each of its breakpoints (held instants and segment ends),
+    with fewer segments and the same makespan; the result is verified like any other."""
+    import fiberplan.profiles as profiles_module
+
+    run = fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 3), "mpc", {"motor_limits": False})
+    motors = run.scenario.instrument.motors
+    through = fp.discretise(run)
+    monkeypatch.setattr(profiles_module, "STRETCH_PAUSES", False)
+    paused = fp.discretise(run)
+    assert through.report.ok and through.report.motor_violations == [] and paused.report.motor_violations == []
+    assert through.stats["pauses"] == paused.stats["pauses"] > 0
+    assert through.stats["pauses_run_through"] > 0
+    assert through.segment_counts().sum() < paused.segment_counts().sum()
+    assert through.stats["makespan_after_s"] == paused.stats["makespan_after_s"]
+    step = paused.stats["pause_s"] / paused.stats["pauses"]
+    changed = 0
+    for key, prof in through.joints.items():
+        t, q = prof.knots()
+        t_paused, q_paused = paused.joints[key].knots()
+        np.testing.assert_allclose(np.interp(t, t_paused, q_paused), q, atol=1e-9, err_msg=str(key))  # the same angle at each breakpoint
+        moving = prof.speeds_rad_s[prof.speeds_rad_s != 0.0]
+        assert np.all(np.abs(moving) >= motors.min_speed_rad_s[key[1]] * (1 - 1e-9))  # the verifier's tolerance
+        tau = np.linspace(t[0], t[-1], 2001)
+        gap = np.max(np.abs(np.interp(tau, t, q) - np.interp(tau, t_paused, q_paused)))
+        assert gap <= step * paused.stats["pauses"] * np.max(np.abs(paused.joints[key].speeds_rad_s)) + 1e-9
+        changed += len(prof.durations_s) < len(paused.joints[key].durations_s)
+    assert changed > 0
 
 
 def test_cli_no_pauses_leaves_the_violations_reported(tmp_path, run_cli):

@@ -60,6 +60,8 @@ ALPHA_SHARES = (0.5, 0.75)  # splits of a refitted positioner's room between alp
 REFIT_FRACTION = 0.9  # share of a pair's planned clearance a positioner refitted after breaking a motor limit may use
 WIDER_FRACTIONS = (0.7, 0.9)  # shares of the planned clearances tried in turn where the pauses leave motor-limit violations
 REFINE = 5  # a positioner that breaks a motor limit is fitted again with this many breakpoint instants per sample interval
+STRETCH_PAUSES = True  # joints run through the pauses inside their segments where the motors allow (:func:`_stretch_pauses`)
+STRETCH_ROUNDS = 3  # verifications of the stretched pauses, each keeping split the positioners found in a collision
 _TOL = 1e-12
 
 
@@ -283,7 +285,7 @@ def _attempt(
             else:
                 fitter.narrow(scenario.index_of(ident))
     pause_times: list[float] = []
-    mended = 0
+    mended = n_stretched = 0
     pause_s = max(float(np.median(np.diff(times))) if len(times) > 1 else 0.0, inst.motors.command_period_s or 0.0)  # one sample step
     if pauses and report.motors_checked and report.motor_violations and pause_s > 0.0:
         # Creeps first (they may add transitions), then pauses; the first variant the verifier passes is kept.
@@ -302,6 +304,11 @@ def _attempt(
             verify_s += time.perf_counter() - checked
             if candidate_report.ok:  # held configurations are the profiles' own; a mended creep moves a hair: checked
                 profiles, rebuilt, report, pause_times, mended = candidate, candidate_rebuilt, candidate_report, times_now, n_mended
+                if times_now and STRETCH_PAUSES:
+                    stretched, checked_s = _stretch_pauses(scenario, inst, joints_now, times_now, pause_s, profiles, report)
+                    verify_s += checked_s
+                    if stretched is not None:
+                        profiles, rebuilt, report, n_stretched = stretched
                 break
     stats = {
         "limits": limits_applied(inst),
@@ -309,6 +316,7 @@ def _attempt(
         "pauses": len(pause_times),
         "pause_s": pause_s * len(pause_times),
         "creeps_mended": mended,
+        "pauses_run_through": n_stretched,
         "refit_rounds": rounds,
         "followed_samples": sorted(set(followed)),
         "relaxed_segments": int(fitter.relaxed.sum()),
@@ -316,6 +324,38 @@ def _attempt(
         "makespan_after_s": _makespan(rebuilt.times, rebuilt.joints),
     }
     return profiles.joints, report, stats, verify_s
+
+
+def _stretch_pauses(
+    scenario: Scenario, inst: Instrument, joints: dict[tuple[int, int], JointProfile], pause_times: list[float], pause_s: float,
+    paused: Profiles, paused_report: VerificationReport,
+) -> tuple[tuple[Profiles, Trajectory, VerificationReport, int] | None, float]:
+    """The paused profiles with the segments that pauses split stretched over them instead
+    (:func:`_stretchable`, :func:`_paused`), verified; positioners found in a collision are kept
+    split and the rest verified again, up to :data:`STRETCH_ROUNDS` times. Kept only where no more
+    motor limits are broken than with the pauses alone and the joints have fewer segments in all.
+    Returns ``(profiles, rebuilt, report, segments stretched)`` or ``None``, and the time spent
+    verifying."""
+    keep: set[int] = set()
+    verify_s = 0.0
+    for _ in range(STRETCH_ROUNDS):
+        mask = _stretchable(joints, pause_times, pause_s, inst.motors, keep)
+        if not mask:
+            return None, verify_s
+        candidate = Profiles(scenario, _paused(joints, pause_times, pause_s, mask))
+        checked = time.perf_counter()
+        rebuilt = candidate.trajectory()
+        report = verify(scenario, rebuilt, instrument=inst)
+        verify_s += time.perf_counter() - checked
+        if report.ok:
+            better = (len(report.motor_violations) <= len(paused_report.motor_violations)
+                      and candidate.segment_counts().sum() < paused.segment_counts().sum())
+            return ((candidate, rebuilt, report, sum(sum(sum(f) for f in plan.values()) for plan in mask.values())) if better else None), verify_s
+        named = {e.id_i for e in report.collisions} | {e.id_j for e in report.collisions} | {v.positioner_id for v in report.limit_violations}
+        if not named:
+            return None, verify_s
+        keep |= {scenario.index_of(ident) for ident in named}
+    return None, verify_s
 
 
 _MOVING = 1e-9  # rad/s: the verifier's threshold of a moving command
@@ -379,12 +419,24 @@ def _mend_creeps(joints: dict[tuple[int, int], JointProfile], motors: MotorLimit
     return out, count
 
 
-def _paused(joints: dict[tuple[int, int], JointProfile], pause_times: list[float], pause_s: float) -> dict[tuple[int, int], JointProfile]:
+def _paused(
+    joints: dict[tuple[int, int], JointProfile], pause_times: list[float], pause_s: float,
+    stretched: dict[tuple[int, int], dict[int, list[bool]]] | None = None,
+) -> dict[tuple[int, int], JointProfile]:
     """Every joint's profile with everyone holding still for ``pause_s`` at each of ``pause_times``
     (times of the profiles before pausing): a joint in a segment there is split, holds, and goes
     on at the same speed; a joint that has not started starts later; one that has finished holds.
     Every configuration is one the profiles pass through, held: the positions at each instant of
-    the paused profiles are those of the profiles at an earlier instant, for everyone alike."""
+    the paused profiles are those of the profiles at an earlier instant, for everyone alike.
+
+    ``stretched[key][s]``: per pause inside segment ``s`` of that joint (farther than
+    :data:`TIME_ROUND_S` from its ends), whether the joint runs through it instead of holding:
+    the piece between two holds (or the segment's ends) then runs slower over its paused span,
+    its speed times ``D / (D + a pause_s)`` for ``D`` of the profile's time and ``a`` pauses run
+    through, and is at the same angle as the paused profile at each hold and end, within
+    ``a pause_s`` of travel of it in between (:func:`_stretchable`). A pause at a segment's start
+    is a hold either way.
+    """
     out: dict[tuple[int, int], JointProfile] = {}
     for key, prof in joints.items():
         edges, _ = prof.knots()
@@ -392,19 +444,90 @@ def _paused(joints: dict[tuple[int, int], JointProfile], pause_times: list[float
         speeds: list[float] = []
         pending = [t for t in pause_times if t > prof.start_s + TIME_ROUND_S]
         start_s = prof.start_s + pause_s * (len(pause_times) - len(pending))  # pauses before its start: it starts later
-        for d, v, t0, t1 in zip(prof.durations_s.tolist(), prof.speeds_rad_s.tolist(), edges[:-1].tolist(), edges[1:].tolist(), strict=True):
+        through = {} if stretched is None else stretched.get(key, {})
+        segments = zip(prof.durations_s.tolist(), prof.speeds_rad_s.tolist(), edges[:-1].tolist(), edges[1:].tolist(), strict=True)
+        for s, (d, v, t0, t1) in enumerate(segments):
+            flags = iter(through.get(s, ()))
             cut = t0
+            run = 0  # pauses run through since the last cut
             while pending and pending[0] < t1 - TIME_ROUND_S:  # a pause inside this segment (or at its start)
                 t = pending.pop(0)
-                if t - cut > TIME_ROUND_S:
-                    durations.append(t - cut)
-                    speeds.append(v)
+                if t - cut > TIME_ROUND_S or run:
+                    if next(flags, False):
+                        run += 1
+                        continue
+                    durations.append(t - cut + run * pause_s)
+                    speeds.append(v * (t - cut) / (t - cut + run * pause_s) if run else v)
                 durations.append(pause_s)
                 speeds.append(0.0)
-                cut = t
-            durations.append(t1 - cut if cut > t0 else d)
-            speeds.append(v)
+                cut, run = t, 0
+            if run:
+                durations.append(t1 - cut + run * pause_s)
+                speeds.append(v * (t1 - cut) / (t1 - cut + run * pause_s))
+            else:
+                durations.append(t1 - cut if cut > t0 else d)
+                speeds.append(v)
         out[key] = _trimmed(start_s, prof.start_rad, np.array(durations), np.array(speeds))
+    return out
+
+
+def _stretchable(
+    joints: dict[tuple[int, int], JointProfile], pause_times: list[float], pause_s: float, motors: MotorLimits, keep: set[int],
+) -> dict[tuple[int, int], dict[int, list[bool]]]:
+    """Which pauses inside which moving segments :func:`_paused` may let a joint run through
+    (``stretched`` of :func:`_paused`), for the positioners not in ``keep`` (indices): along each
+    segment, a pause is run through while the piece it joins stays at or above the motors'
+    minimum speed, else held (the next piece starts there, at the segment's speed). A segment
+    whose first or last piece would then change speed beyond the motors' limits against the
+    moving pieces around it (:func:`_breaks`; a pause at a segment's start is a stop) holds at
+    every pause, and the check is made again until nothing changes."""
+    paused_at = np.array(pause_times)
+    out: dict[tuple[int, int], dict[int, list[bool]]] = {}
+    for key, prof in joints.items():
+        if key[0] in keep:
+            continue
+        low = 0.0 if motors.min_speed_rad_s is None else motors.min_speed_rad_s[key[1]] * (1.0 + _CREEP_MARGIN)
+        edges, _ = prof.knots()
+        # The pauses strictly inside each segment, and whether one falls at its start (as :func:`_paused` finds them).
+        first = np.searchsorted(paused_at, edges[:-1] + TIME_ROUND_S, side="right")
+        last = np.searchsorted(paused_at, edges[1:] - TIME_ROUND_S, side="left")
+        stopped = (first > np.searchsorted(paused_at, edges[:-1] - TIME_ROUND_S, side="left")).tolist()
+        v = prof.speeds_rad_s.tolist()
+        plan: dict[int, list[bool]] = {}
+        ends: dict[int, tuple[float, float]] = {}  # speeds of a stretched segment's first and last pieces
+        for s in np.flatnonzero((last > first) & (prof.speeds_rad_s != 0.0)).tolist():
+            if abs(v[s]) < low:
+                continue
+            t0, t1 = float(edges[s]), float(edges[s + 1])
+            cuts = [*paused_at[first[s]:last[s]].tolist(), t1]
+            flags: list[bool] = []
+            speeds: list[float] = []
+            cut, run = t0, 0
+            for t, t_next in itertools.pairwise(cuts):
+                if abs(v[s]) * (t_next - cut) >= low * (t_next - cut + (run + 1) * pause_s):  # the piece, run through t, to t_next at least
+                    flags.append(True)
+                    run += 1
+                else:
+                    flags.append(False)
+                    speeds.append(v[s] * (t - cut) / (t - cut + run * pause_s))
+                    cut, run = t, 0
+            speeds.append(v[s] * (t1 - cut) / (t1 - cut + run * pause_s))
+            if any(flags):
+                plan[s], ends[s] = flags, (speeds[0], speeds[-1])
+        changed = bool(plan)
+        while changed:
+            changed = False
+            for s in range(1, len(v)):
+                if stopped[s] or not (s - 1 in plan or s in plan):
+                    continue
+                before = ends[s - 1][1] if s - 1 in plan else v[s - 1]
+                after = ends[s][0] if s in plan else v[s]
+                if _breaks(before, after, motors):
+                    plan.pop(s - 1, None)
+                    plan.pop(s, None)
+                    changed = True
+        if plan:
+            out[key] = plan
     return out
 
 
