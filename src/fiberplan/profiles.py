@@ -61,6 +61,7 @@ REFIT_FRACTION = 0.9  # share of a pair's planned clearance a positioner refitte
 WIDER_FRACTIONS = (0.7, 0.9)  # shares of the planned clearances tried in turn where the pauses leave motor-limit violations
 REFINE = 5  # a positioner that breaks a motor limit is fitted again with this many breakpoint instants per sample interval
 STRETCH_PAUSES = True  # joints run through the pauses inside their segments where the motors allow (:func:`_stretch_pauses`)
+EARLY_ARRIVAL_MM = 0.25  # a joint running through pauses at its minimum speed stays this close to the paused profile (motion bound)
 STRETCH_ROUNDS = 3  # verifications of the stretched pauses, each keeping split the positioners found in a collision
 _TOL = 1e-12
 
@@ -338,11 +339,15 @@ def _stretch_pauses(
     verifying."""
     keep: set[int] = set()
     verify_s = 0.0
+    rho = point_extents(inst)
+    reach = (EARLY_ARRIVAL_MM / float(rho[0]), EARLY_ARRIVAL_MM / float(rho[1]))
+    motors = inst.motors
+    lows = (0.0, 0.0) if motors.min_speed_rad_s is None else tuple(m * (1.0 + _CREEP_MARGIN) for m in motors.min_speed_rad_s)
     for _ in range(STRETCH_ROUNDS):
-        mask = _stretchable(joints, pause_times, pause_s, inst.motors, keep)
+        mask = _stretchable(joints, pause_times, pause_s, motors, keep, reach)
         if not mask:
             return None, verify_s
-        candidate = Profiles(scenario, _paused(joints, pause_times, pause_s, mask))
+        candidate = Profiles(scenario, _paused(joints, pause_times, pause_s, mask, lows))
         checked = time.perf_counter()
         rebuilt = candidate.trajectory()
         report = verify(scenario, rebuilt, instrument=inst)
@@ -421,7 +426,7 @@ def _mend_creeps(joints: dict[tuple[int, int], JointProfile], motors: MotorLimit
 
 def _paused(
     joints: dict[tuple[int, int], JointProfile], pause_times: list[float], pause_s: float,
-    stretched: dict[tuple[int, int], dict[int, list[bool]]] | None = None,
+    stretched: dict[tuple[int, int], dict[int, list[bool]]] | None = None, lows: tuple[float, float] = (0.0, 0.0),
 ) -> dict[tuple[int, int], JointProfile]:
     """Every joint's profile with everyone holding still for ``pause_s`` at each of ``pause_times``
     (times of the profiles before pausing): a joint in a segment there is split, holds, and goes
@@ -433,9 +438,9 @@ def _paused(
     :data:`TIME_ROUND_S` from its ends), whether the joint runs through it instead of holding:
     the piece between two holds (or the segment's ends) then runs slower over its paused span,
     its speed times ``D / (D + a pause_s)`` for ``D`` of the profile's time and ``a`` pauses run
-    through, and is at the same angle as the paused profile at each hold and end, within
-    ``a pause_s`` of travel of it in between (:func:`_stretchable`). A pause at a segment's start
-    is a hold either way.
+    through, or, where that would fall below ``lows[joint]``, moves at that speed and waits
+    (:func:`_piece`); either way it is at the same angle as the paused profile at each hold and
+    at the segment's end (:func:`_stretchable`). A pause at a segment's start is a hold either way.
     """
     out: dict[tuple[int, int], JointProfile] = {}
     for key, prof in joints.items():
@@ -456,14 +461,20 @@ def _paused(
                     if next(flags, False):
                         run += 1
                         continue
-                    durations.append(t - cut + run * pause_s)
-                    speeds.append(v * (t - cut) / (t - cut + run * pause_s) if run else v)
+                    if run:
+                        for duration, speed in _piece(v, t - cut, run, pause_s, lows[key[1]]):
+                            durations.append(duration)
+                            speeds.append(speed)
+                    else:
+                        durations.append(t - cut)
+                        speeds.append(v)
                 durations.append(pause_s)
                 speeds.append(0.0)
                 cut, run = t, 0
             if run:
-                durations.append(t1 - cut + run * pause_s)
-                speeds.append(v * (t1 - cut) / (t1 - cut + run * pause_s))
+                for duration, speed in _piece(v, t1 - cut, run, pause_s, lows[key[1]]):
+                    durations.append(duration)
+                    speeds.append(speed)
             else:
                 durations.append(t1 - cut if cut > t0 else d)
                 speeds.append(v)
@@ -471,8 +482,34 @@ def _paused(
     return out
 
 
+def _piece(v: float, span: float, run: int, pause_s: float, low: float) -> list[tuple[float, float]]:
+    """``(duration, speed)`` of the piece of a segment at speed ``v`` that covers ``span`` of the
+    profile's time and runs through ``run`` pauses: one slower segment over its paused span where
+    that stays at or above ``low``, else a move over the same angle at ``low`` and a hold (the
+    joint arrives early and waits, on the rebuilt trajectory's time grid)."""
+    total = span + run * pause_s
+    if abs(v) * span >= low * total:
+        return [(total, v * span / total)]
+    move = round(abs(v) * span / low / TIME_ROUND_S) * TIME_ROUND_S
+    return [(move, v * span / move), (total - move, 0.0)]
+
+
+def _runs_through(speed: float, span: float, run: int, pause_s: float, low: float, reach: float) -> bool:
+    """Whether a piece at ``speed`` (> 0) over ``span`` of the profile's time may run through
+    ``run`` pauses (:func:`_piece`): always where its slower speed stays at or above ``low``;
+    arriving early at ``low`` only where it stays within ``reach`` (rad) of the paused profile:
+    ahead of it by at most ``angle (1 - low / speed)``, behind by at most ``speed`` times the
+    shorter of the pauses and the hold at its end."""
+    total = span + run * pause_s
+    if speed * span >= low * total:
+        return True
+    angle = speed * span
+    return max(angle * (1.0 - low / speed), speed * min(run * pause_s, total - angle / low)) <= reach
+
+
 def _stretchable(
     joints: dict[tuple[int, int], JointProfile], pause_times: list[float], pause_s: float, motors: MotorLimits, keep: set[int],
+    reach: tuple[float, float],
 ) -> dict[tuple[int, int], dict[int, list[bool]]]:
     """Which pauses inside which moving segments :func:`_paused` may let a joint run through
     (``stretched`` of :func:`_paused`), for the positioners not in ``keep`` (indices): along each
@@ -504,16 +541,16 @@ def _stretchable(
             speeds: list[float] = []
             cut, run = t0, 0
             for t, t_next in itertools.pairwise(cuts):
-                if abs(v[s]) * (t_next - cut) >= low * (t_next - cut + (run + 1) * pause_s):  # the piece, run through t, to t_next at least
+                if _runs_through(abs(v[s]), t_next - cut, run + 1, pause_s, low, reach[key[1]]):  # the piece, run through t, to t_next at least
                     flags.append(True)
                     run += 1
                 else:
                     flags.append(False)
-                    speeds.append(v[s] * (t - cut) / (t - cut + run * pause_s))
+                    speeds.append(_piece(v[s], t - cut, run, pause_s, low)[0][1])
                     cut, run = t, 0
-            speeds.append(v[s] * (t1 - cut) / (t1 - cut + run * pause_s))
+            last_piece = _piece(v[s], t1 - cut, run, pause_s, low)
             if any(flags):
-                plan[s], ends[s] = flags, (speeds[0], speeds[-1])
+                plan[s], ends[s] = flags, (speeds[0] if speeds else last_piece[0][1], last_piece[-1][1])
         changed = bool(plan)
         while changed:
             changed = False
