@@ -60,6 +60,9 @@ ALPHA_SHARES = (0.5, 0.75)  # splits of a refitted positioner's room between alp
 REFIT_FRACTION = 0.9  # share of a pair's planned clearance a positioner refitted after breaking a motor limit may use
 WIDER_FRACTIONS = (0.7, 0.9)  # shares of the planned clearances tried in turn where the pauses leave motor-limit violations
 REFINE = 5  # a positioner that breaks a motor limit is fitted again with this many breakpoint instants per sample interval
+DECHATTER = True  # where the pauses leave motor-limit violations or lengthen the makespan, a fit from the smoothed samples is tried (:func:`_dechatter`)
+DECHATTER_GROWTH = 0.05  # the share of the makespan the pauses may add before the smoothed samples are tried
+DECHATTER_ROUNDS = 3  # verifications of the smoothed samples, each keeping as planned the positioners found in a collision
 STRETCH_PAUSES = True  # joints run through the pauses inside their segments where the motors allow (:func:`_stretch_pauses`)
 EARLY_ARRIVAL_MM = 0.25  # a joint running through pauses at its minimum speed stays this close to the paused profile (motion bound)
 STRETCH_ROUNDS = 3  # verifications of the stretched pauses, each keeping split the positioners found in a collision
@@ -233,25 +236,103 @@ def discretise_trajectory(
             f"{len(source.limit_violations)} limit violation(s), {source.n_non_finite_samples} non-finite sample(s): "
             "run `fiberplan verify` on it"
         )
+    sources = {"planned": (trajectory, pairs, clear)}
+    tried: list[tuple[str, float]] = []
     best: tuple[dict[tuple[int, int], JointProfile], VerificationReport, dict[str, Any]] | None = None
-    tried: list[float] = []
-    for f in (fraction, *(w for w in WIDER_FRACTIONS if w > fraction)):
+
+    def attempt(name: str, f: float) -> bool:
+        """One fit from the source ``name`` in the share ``f``; kept if better than the best so far
+        (fewer motor-limit violations, then a shorter makespan, then fewer segments)."""
+        nonlocal best, verify_s
         try:
-            joints, report, stats, verify_f = _attempt(scenario, trajectory, inst, pairs, clear, f, pauses)
+            source, pairs_of, clear_of = sources[name]
+            made = _attempt(scenario, source, inst, pairs_of, clear_of, f, pauses)
         except ProfileError:
             if best is None:
                 raise
-            continue  # a wider corridor whose profiles cannot be verified: the narrower ones stand
-        tried.append(f)
-        verify_s += verify_f
-        if best is None or len(report.motor_violations) < len(best[1].motor_violations):
-            best = (joints, report, stats)
-        if not (pauses and report.motors_checked and report.motor_violations):
-            break  # wider corridors are tried only where the pauses leave motor-limit violations
+            return False  # profiles that cannot be verified: the others stand
+        tried.append((name, f))
+        verify_s += made[3]
+        made[2]["source"] = name
+        if best is None or _quality(made[:3]) < _quality(best):
+            best = made[:3]
+            return True
+        return False
+
+    attempt("planned", fraction)
     assert best is not None
+    smoothed = 0
+    grew = best[2]["makespan_after_s"] > best[2]["makespan_before_s"] * (1.0 + DECHATTER_GROWTH)
+    if pauses and DECHATTER and best[1].motors_checked and (best[1].motor_violations or grew):
+        dechattered, smoothed, checked_s = _dechatter(scenario, trajectory, inst)
+        verify_s += checked_s
+        if dechattered is not None:
+            sources["dechattered"] = dechattered
+            attempt("dechattered", fraction)
+    for f in (w for w in WIDER_FRACTIONS if w > fraction):
+        if not (pauses and best[1].motors_checked and best[1].motor_violations):
+            break  # wider corridors are tried only where the pauses leave motor-limit violations
+        attempt(best[2]["source"], f)
     joints, report, stats = best
-    stats |= {"fractions_tried": tried, "discretise_s": time.perf_counter() - started, "of_which_verify_s": verify_s}
+    stats |= {"fractions_tried": [f for _, f in tried], "sources_tried": [name for name, _ in tried], "dechattered_samples": smoothed,
+              "makespan_before_s": _makespan(trajectory.times, trajectory.joints),
+              "discretise_s": time.perf_counter() - started, "of_which_verify_s": verify_s}
     return Profiles(scenario, joints, report, stats)
+
+
+def _quality(made: tuple[dict[tuple[int, int], JointProfile], VerificationReport, dict[str, Any]]) -> tuple[int, float, int]:
+    """What makes one set of verified profiles better than another: fewer motor-limit
+    violations, then a shorter makespan, then fewer segments."""
+    joints, report, stats = made
+    return len(report.motor_violations), stats["makespan_after_s"], sum(len(p.durations_s) for p in joints.values())
+
+
+def _dechattered(joints: np.ndarray, keep: set[int]) -> np.ndarray:
+    """The planned samples ``(T, N, 2)`` with each zigzag smoothed: at every sample where a joint
+    reverses, and at the samples either side, the angle becomes ``(q[k-1] + 2 q[k] + q[k+1]) / 4``
+    (a chatter at the sample step, ``+ - + -``, becomes its midline; a steady motion is unchanged).
+    The first and last samples and the positioners in ``keep`` (indices) stay as planned. Each
+    new sample is a convex combination of planned ones, and each step one of planned steps: the
+    speed bound and the hard stops still hold."""
+    step = np.diff(joints, axis=0)
+    turns = np.zeros(joints.shape, dtype=bool)
+    turns[1:-1] = step[1:] * step[:-1] < 0.0
+    near = turns.copy()
+    near[1:] |= turns[:-1]
+    near[:-1] |= turns[1:]
+    near[0] = near[-1] = False
+    if keep:
+        near[:, sorted(keep)] = False
+    out = joints.copy()
+    out[1:-1] = np.where(near[1:-1], 0.25 * joints[:-2] + 0.5 * joints[1:-1] + 0.25 * joints[2:], joints[1:-1])
+    return out
+
+
+def _dechatter(
+    scenario: Scenario, trajectory: Trajectory, inst: Instrument,
+) -> tuple[tuple[Trajectory, np.ndarray, np.ndarray] | None, int, float]:
+    """The planned trajectory with its zigzags smoothed (:func:`_dechattered`), verified with its
+    clearances; positioners found in a collision keep their planned samples and the rest is
+    verified again, up to :data:`DECHATTER_ROUNDS` times. Returns ``((trajectory, pairs,
+    clearances) or None, samples changed, time spent verifying)``."""
+    keep: set[int] = set()
+    verify_s = 0.0
+    for _ in range(DECHATTER_ROUNDS):
+        joints = _dechattered(trajectory.joints, keep)
+        changed = int(np.count_nonzero(joints != trajectory.joints))
+        if not changed:
+            return None, 0, verify_s
+        candidate = Trajectory(trajectory.times, joints)
+        checked = time.perf_counter()
+        report, pairs, clear = verify_with_clearances(scenario, candidate, instrument=inst)
+        verify_s += time.perf_counter() - checked
+        if report.ok:
+            return (candidate, pairs, clear), changed, verify_s
+        named = {e.id_i for e in report.collisions} | {e.id_j for e in report.collisions} | {v.positioner_id for v in report.limit_violations}
+        if not named:
+            return None, 0, verify_s
+        keep |= {scenario.index_of(ident) for ident in named}
+    return None, 0, verify_s
 
 
 def _attempt(
