@@ -60,7 +60,7 @@ ALPHA_SHARES = (0.5, 0.75)  # splits of a refitted positioner's room between alp
 REFIT_FRACTION = 0.9  # share of a pair's planned clearance a positioner refitted after breaking a motor limit may use
 WIDER_FRACTIONS = (0.7, 0.9)  # shares of the planned clearances tried in turn where the pauses leave motor-limit violations
 REFINE = 5  # a positioner that breaks a motor limit is fitted again with this many breakpoint instants per sample interval
-DECHATTER = True  # where the pauses leave motor-limit violations or lengthen the makespan, a fit from the smoothed samples is tried (:func:`_dechatter`)
+DECHATTER = True  # where the pauses leave violations or lengthen the makespan, a fit from the smoothed samples is tried (:func:`_dechatter`)
 DECHATTER_GROWTH = 0.05  # the share of the makespan the pauses may add before the smoothed samples are tried
 DECHATTER_ROUNDS = 3  # verifications of the smoothed samples, each keeping as planned the positioners found in a collision
 STRETCH_PAUSES = True  # joints run through the pauses inside their segments where the motors allow (:func:`_stretch_pauses`)
@@ -240,9 +240,9 @@ def discretise_trajectory(
     tried: list[tuple[str, float]] = []
     best: tuple[dict[tuple[int, int], JointProfile], VerificationReport, dict[str, Any]] | None = None
 
-    def attempt(name: str, f: float) -> bool:
+    def attempt(name: str, f: float) -> None:
         """One fit from the source ``name`` in the share ``f``; kept if better than the best so far
-        (fewer motor-limit violations, then a shorter makespan, then fewer segments)."""
+        (:func:`_quality`)."""
         nonlocal best, verify_s
         try:
             source, pairs_of, clear_of = sources[name]
@@ -250,14 +250,12 @@ def discretise_trajectory(
         except ProfileError:
             if best is None:
                 raise
-            return False  # profiles that cannot be verified: the others stand
+            return  # profiles that cannot be verified: the others stand
         tried.append((name, f))
         verify_s += made[3]
         made[2]["source"] = name
         if best is None or _quality(made[:3]) < _quality(best):
             best = made[:3]
-            return True
-        return False
 
     attempt("planned", fraction)
     assert best is not None
@@ -416,7 +414,7 @@ def _stretch_pauses(
     (:func:`_stretchable`, :func:`_paused`), verified; positioners found in a collision are kept
     split and the rest verified again, up to :data:`STRETCH_ROUNDS` times. Kept only where no more
     motor limits are broken than with the pauses alone and the joints have fewer segments in all.
-    Returns ``(profiles, rebuilt, report, segments stretched)`` or ``None``, and the time spent
+    Returns ``(profiles, rebuilt, report, pauses run through)`` or ``None``, and the time spent
     verifying."""
     keep: set[int] = set()
     verify_s = 0.0
@@ -569,9 +567,9 @@ def _piece(v: float, span: float, run: int, pause_s: float, low: float) -> list[
     that stays at or above ``low``, else a move over the same angle at ``low`` and a hold (the
     joint arrives early and waits, on the rebuilt trajectory's time grid)."""
     total = span + run * pause_s
-    if abs(v) * span >= low * total:
+    move = total if abs(v) * span >= low * total else round(abs(v) * span / low / TIME_ROUND_S) * TIME_ROUND_S
+    if move >= total - TIME_ROUND_S:  # no hold left on the grid: one segment over the whole span
         return [(total, v * span / total)]
-    move = round(abs(v) * span / low / TIME_ROUND_S) * TIME_ROUND_S
     return [(move, v * span / move), (total - move, 0.0)]
 
 
