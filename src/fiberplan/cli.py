@@ -470,7 +470,9 @@ def _paths_run(paths_file: Path, scenario_file: Path | None) -> Any:
 @click.option("--pauses/--no-pauses", default=True, show_default=True,
               help="Mend what the fit leaves of the motor limits: creeps below the minimum speed move at the minimum and wait; "
                    "where a joint would reverse without a stop or jump in speed, everyone holds still for one sample step "
-                   "(the makespan grows by the pauses).")
+                   "(the makespan grows by the pauses; joints moving through a pause run through it where they can); where "
+                   "that leaves violations or adds over 5 % of makespan, a fit from the planned samples with their zigzags "
+                   "smoothed (verified) is tried too.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON summary.")
 def profiles(run_file: Path, out: Path, form: str | None, fraction: float, pauses: bool, as_json: bool) -> None:
     """Turn a verified trajectory file into motor profiles: per positioner and joint, a few
@@ -504,6 +506,8 @@ def profiles(run_file: Path, out: Path, form: str | None, fraction: float, pause
     if summary["pauses"] or summary["creeps_mended"]:
         click.echo(f"  {summary['creeps_mended']} creep(s) mended, {summary['pauses']} pause(s) of everyone ({summary['pause_s']:.2f} s in all) "
                    "where a joint would creep, reverse without a stop or jump in speed (--no-pauses: leave them, reported)")
+    if summary["source"] == "dechattered":
+        click.echo(f"  fitted from the planned samples with their zigzags smoothed ({summary['dechattered_samples']} samples, verified)")
     if summary["followed_samples"]:
         click.echo(f"  positioners following their planned samples (narrower fits failed the verifier): {summary['followed_samples']}")
     if summary["motor_violations"]:
