@@ -384,7 +384,8 @@ def test_a_stop_and_go_plan_is_fitted_from_its_smoothed_samples(monkeypatch):
     """The dnf's plan of MOONS 61 unfold seed 16 chatters at the sample step where positioners
     wait on each other; fitted as planned, its profiles need 118 pauses (+28 % of makespan). The
     fit from its smoothed samples (verified first, with their own clearances) needs few, and is
-    kept: no motor-limit violation, a makespan within 5 % of the plan's, fewer segments."""
+    kept: no motor-limit violation, a makespan within 5 % of the plan's, fewer segments. (A plan
+    that chatters is fitted from its smoothed samples first; one that does not, as planned first.)"""
     import fiberplan.profiles as profiles_module
 
     run = fp.plan(fp.make_scenario("moons", 61, "unfold", 16), "dnf")
@@ -393,7 +394,8 @@ def test_a_stop_and_go_plan_is_fitted_from_its_smoothed_samples(monkeypatch):
     planned = fp.discretise(run)
     assert planned.stats["makespan_after_s"] > 1.05 * planned.stats["makespan_before_s"]  # the case this test is about
     assert smoothed.report.ok and smoothed.report.motor_violations == []
-    assert smoothed.stats["sources_tried"] == ["planned", "dechattered"] and smoothed.stats["source"] == "dechattered"
+    assert profiles_module._turn_share(run.trajectory.joints) >= profiles_module.CHATTER_SHARE  # it chatters: smoothed first,
+    assert smoothed.stats["sources_tried"] == ["dechattered"] and smoothed.stats["source"] == "dechattered"  # and that is enough
     assert smoothed.stats["dechattered_samples"] > 0
     assert smoothed.stats["makespan_before_s"] == planned.stats["makespan_before_s"]
     assert smoothed.stats["makespan_after_s"] <= 1.05 * smoothed.stats["makespan_before_s"]

@@ -61,6 +61,7 @@ REFIT_FRACTION = 0.9  # share of a pair's planned clearance a positioner refitte
 WIDER_FRACTIONS = (0.7, 0.9)  # shares of the planned clearances tried in turn where the pauses leave motor-limit violations
 REFINE = 5  # a positioner that breaks a motor limit is fitted again with this many breakpoint instants per sample interval
 DECHATTER = True  # where the pauses leave violations or lengthen the makespan, a fit from the smoothed samples is tried (:func:`_dechatter`)
+CHATTER_SHARE = 0.02  # a plan whose joints turn back after this share of their moving steps is fitted from its smoothed samples first
 DECHATTER_GROWTH = 0.05  # the share of the makespan the pauses may add before the smoothed samples are tried
 DECHATTER_ROUNDS = 3  # verifications of the smoothed samples, each keeping as planned the positioners found in a collision
 STRETCH_PAUSES = True  # joints run through the pauses inside their segments where the motors allow (:func:`_stretch_pauses`)
@@ -239,6 +240,8 @@ def discretise_trajectory(
     sources = {"planned": (trajectory, pairs, clear)}
     tried: list[tuple[str, float]] = []
     best: tuple[dict[tuple[int, int], JointProfile], VerificationReport, dict[str, Any]] | None = None
+    failed: list[ProfileError] = []
+    planned_makespan = _makespan(trajectory.times, trajectory.joints)
 
     def attempt(name: str, f: float) -> None:
         """One fit from the source ``name`` in the share ``f``; kept if better than the best so far
@@ -247,33 +250,49 @@ def discretise_trajectory(
         try:
             source, pairs_of, clear_of = sources[name]
             made = _attempt(scenario, source, inst, pairs_of, clear_of, f, pauses)
-        except ProfileError:
-            if best is None:
-                raise
-            return  # profiles that cannot be verified: the others stand
+        except ProfileError as e:
+            failed.append(e)  # profiles that cannot be verified: the others stand
+            return
         tried.append((name, f))
         verify_s += made[3]
         made[2]["source"] = name
         if best is None or _quality(made[:3]) < _quality(best):
             best = made[:3]
 
-    attempt("planned", fraction)
-    assert best is not None
-    smoothed = 0
-    grew = best[2]["makespan_after_s"] > best[2]["makespan_before_s"] * (1.0 + DECHATTER_GROWTH)
-    if pauses and DECHATTER and best[1].motors_checked and (best[1].motor_violations or grew):
-        dechattered, smoothed, checked_s = _dechatter(scenario, trajectory, inst)
+    def mended() -> bool:
+        """Whether the best profiles so far break no motor limit and the pauses cost at most
+        :data:`DECHATTER_GROWTH` of the planned makespan."""
+        return best is not None and not best[1].motor_violations and best[2]["makespan_after_s"] <= planned_makespan * (1.0 + DECHATTER_GROWTH)
+
+    def smoothed_attempt() -> int:
+        """The fit from the smoothed samples, if they verify (:func:`_dechatter`); the samples changed."""
+        nonlocal verify_s
+        dechattered, changed, checked_s = _dechatter(scenario, trajectory, inst)
         verify_s += checked_s
         if dechattered is not None:
             sources["dechattered"] = dechattered
             attempt("dechattered", fraction)
+        return changed
+
+    smoothed = 0
+    smoothing = pauses and DECHATTER and inst.motors.stated
+    if smoothing and _turn_share(trajectory.joints) >= CHATTER_SHARE:  # a chattering plan: the smoothed samples first,
+        smoothed = smoothed_attempt()
+        if best is None or best[1].motor_violations:  # and as planned only where they leave violations
+            attempt("planned", fraction)
+    else:
+        attempt("planned", fraction)
+        if smoothing and best is not None and best[1].motors_checked and not mended():
+            smoothed = smoothed_attempt()
+    if best is None:
+        raise failed[-1]
     for f in (w for w in WIDER_FRACTIONS if w > fraction):
         if not (pauses and best[1].motors_checked and best[1].motor_violations):
             break  # wider corridors are tried only where the pauses leave motor-limit violations
         attempt(best[2]["source"], f)
     joints, report, stats = best
     stats |= {"fractions_tried": [f for _, f in tried], "sources_tried": [name for name, _ in tried], "dechattered_samples": smoothed,
-              "makespan_before_s": _makespan(trajectory.times, trajectory.joints),
+              "makespan_before_s": planned_makespan,
               "discretise_s": time.perf_counter() - started, "of_which_verify_s": verify_s}
     return Profiles(scenario, joints, report, stats)
 
@@ -283,6 +302,12 @@ def _quality(made: tuple[dict[tuple[int, int], JointProfile], VerificationReport
     violations, then a shorter makespan, then fewer segments."""
     joints, report, stats = made
     return len(report.motor_violations), stats["makespan_after_s"], sum(len(p.durations_s) for p in joints.values())
+
+
+def _turn_share(joints: np.ndarray) -> float:
+    """The share of the moving joint steps ``(T, N, 2)`` after which the joint turns back."""
+    step = np.diff(joints, axis=0)
+    return float(np.count_nonzero(step[1:] * step[:-1] < 0.0)) / max(int(np.count_nonzero(step)), 1)
 
 
 def _dechattered(joints: np.ndarray, keep: set[int]) -> np.ndarray:
