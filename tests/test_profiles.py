@@ -274,11 +274,11 @@ def test_profiles_the_verifier_refuses_are_fitted_again_then_follow_their_sample
     from fiberplan import profiles as module
 
     run = fp.plan(desi_random_61, "mpc")
-    unbounded = lambda self, i, *rest: np.full(self.shared_t.shape[1], np.inf)  # noqa: E731
+    unbounded = lambda self, i, *rest: np.full(self.near_t.shape[1], np.inf)  # noqa: E731
     monkeypatch.setattr(module._Room, "half", unbounded)
     monkeypatch.setattr(module._Room, "left", unbounded)
-    monkeypatch.setattr(module._Room, "half_bound", lambda self: np.full((self.shared_t.shape[1], len(self.still)), np.inf))
-    monkeypatch.setattr(module._Room, "half_of", lambda self, idx: np.full((self.shared_t.shape[1], len(idx)), np.inf))
+    monkeypatch.setattr(module._Room, "half_bound", lambda self: np.full((self.near_t.shape[1], len(self.still)), np.inf))
+    monkeypatch.setattr(module._Room, "half_of", lambda self, idx: np.full((self.near_t.shape[1], len(idx)), np.inf))
     made = fp.discretise(run)
     summary = made.summary()
     assert made.report.ok and made.report.n_collisions == 0

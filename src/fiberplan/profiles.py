@@ -237,7 +237,7 @@ def discretise_trajectory(
             f"{len(source.limit_violations)} limit violation(s), {source.n_non_finite_samples} non-finite sample(s): "
             "run `fiberplan verify` on it"
         )
-    sources = {"planned": (trajectory, pairs, clear)}
+    sources = {"planned": (trajectory, pairs, _near(clear))}  # the verifier's table, its own: made each sample's room in place
     tried: list[tuple[str, float]] = []
     best: tuple[dict[tuple[int, int], JointProfile], VerificationReport, dict[str, Any]] | None = None
     failed: list[ProfileError] = []
@@ -337,7 +337,7 @@ def _dechatter(
     """The planned trajectory with its zigzags smoothed (:func:`_dechattered`), verified with its
     clearances; positioners found in a collision keep their planned samples and the rest is
     verified again, up to :data:`DECHATTER_ROUNDS` times. Returns ``((trajectory, pairs,
-    clearances) or None, samples changed, time spent verifying)``."""
+    clearances as :func:`_near` leaves them) or None, samples changed, time spent verifying)``."""
     keep: set[int] = set()
     verify_s = 0.0
     for _ in range(DECHATTER_ROUNDS):
@@ -350,7 +350,7 @@ def _dechatter(
         report, pairs, clear = verify_with_clearances(scenario, candidate, instrument=inst)
         verify_s += time.perf_counter() - checked
         if report.ok:
-            return (candidate, pairs, clear), changed, verify_s
+            return (candidate, pairs, _near(clear)), changed, verify_s
         named = {e.id_i for e in report.collisions} | {e.id_j for e in report.collisions} | {v.positioner_id for v in report.limit_violations}
         if not named:
             return None, 0, verify_s
@@ -359,14 +359,15 @@ def _dechatter(
 
 
 def _attempt(
-    scenario: Scenario, trajectory: Trajectory, inst: Instrument, pairs: np.ndarray, clear: np.ndarray, fraction: float, pauses: bool,
+    scenario: Scenario, trajectory: Trajectory, inst: Instrument, pairs: np.ndarray, near: np.ndarray, fraction: float, pauses: bool,
 ) -> tuple[dict[tuple[int, int], JointProfile], VerificationReport, dict[str, Any], float]:
-    """One fit of every positioner in the share ``fraction`` of its planned clearances (``clear``,
-    the verifier's, at ``pairs``), refitted until verified, then mended (``pauses``): the
-    verified profiles, their report, their statistics and the time spent verifying."""
+    """One fit of every positioner in the share ``fraction`` of its planned clearances (``near``,
+    the verifier's at ``pairs``, as :func:`_near` leaves them), refitted until verified, then
+    mended (``pauses``): the verified profiles, their report, their statistics and the time spent
+    verifying."""
     verify_s = 0.0
     times, joints = trajectory.times, trajectory.joints
-    fitter = _Fitter(inst, times, joints, _period_steps(inst.motors, times), _Room(inst, joints, pairs, clear, fraction))
+    fitter = _Fitter(inst, times, joints, _period_steps(inst.motors, times), _Room(inst, joints, pairs, near, fraction))
     fitter.fit_all(fraction)
     followed: list[int] = []
     rounds = 0
@@ -810,6 +811,26 @@ def _period_steps(motors: MotorLimits, times: np.ndarray) -> int:
     return round(ratio)
 
 
+_NEAR_ROWS = 256  # pairs whose clearances :func:`_near` works on at once (a small copy each)
+
+
+def _near(clear: np.ndarray) -> np.ndarray:
+    """The verifier's planned clearances ``(T, P)`` with each sample's clearance the least of its
+    own and its two neighbours' (the deviation is linear between samples, so a sample's room
+    covers both intervals), floored at zero: in place when ``clear`` is pair-major (as the
+    verifier stores it), else in a copy."""
+    if not clear.flags.f_contiguous:
+        clear = np.asfortranarray(clear)  # a copy: the caller's array is left as it was
+    clear_t = clear.T  # (P, T), C-contiguous: a pair's samples together
+    for start in range(0, clear_t.shape[0], _NEAR_ROWS):
+        block = clear_t[start:start + _NEAR_ROWS]
+        planned = block.copy()
+        np.minimum(block[:, 1:], planned[:, :-1], out=block[:, 1:])
+        np.minimum(block[:, :-1], planned[:, 1:], out=block[:, :-1])
+        np.maximum(block, 0.0, out=block)
+    return clear
+
+
 class _Room:
     """How far (mm, motion bound) each positioner may leave its planned path at each sample.
 
@@ -820,17 +841,14 @@ class _Room:
     :meth:`left` what ``j``'s profile, as fitted so far, leaves (:meth:`record`).
     """
 
-    def __init__(self, inst: Instrument, joints: np.ndarray, pairs: np.ndarray, clear: np.ndarray, fraction: float) -> None:
+    def __init__(self, inst: Instrument, joints: np.ndarray, pairs: np.ndarray, near: np.ndarray, fraction: float) -> None:
+        """``near``: the planned clearances as :func:`_near` leaves them, ``(T, P)``."""
         self.rho = point_extents(inst)
         self.pairs = pairs
         n_t, n = joints.shape[0], joints.shape[1]
-        clear_t = np.ascontiguousarray(clear.T)  # (P, T): a pair's samples contiguous (no copy from the verifier)
-        near = clear_t.copy()  # each sample's clearance and its two neighbours'
-        np.minimum(near[:, 1:], clear_t[:, :-1], out=near[:, 1:])
-        np.minimum(near[:, :-1], clear_t[:, 1:], out=near[:, :-1])
-        np.maximum(near, 0.0, out=near)
-        self.clear = near.T  # (T, P), a view
-        self.shared_t = fraction * near  # (P, T): f c
+        self.clear = near  # (T, P)
+        self.near_t = np.ascontiguousarray(near.T)  # (P, T): a pair's samples contiguous (a view of the verifier's pair-major table)
+        self.fraction = fraction  # a pair's room at a sample: fraction * near, computed where it is read
         self.still = np.all(joints == joints[:1], axis=(0, 2))  # (N,) never moves
         self.deviation = np.zeros((n_t, n))  # (T, N) motion bound of each fitted profile's deviation
         ends = np.concatenate([np.arange(len(pairs)), np.arange(len(pairs))])
@@ -851,13 +869,13 @@ class _Room:
         """``(T,)``: half of each pair's room (all of it next to a positioner that never moves)."""
         rows, other = self._others(i)
         if len(rows) == 0:
-            return np.full(self.shared_t.shape[1], np.inf)
-        return (self.shared_t[rows] * np.where(self.still[other], 1.0, 0.5)[:, None]).min(axis=0)
+            return np.full(self.near_t.shape[1], np.inf)
+        return (self.fraction * self.near_t[rows] * np.where(self.still[other], 1.0, 0.5)[:, None]).min(axis=0)
 
     def half_bound(self) -> np.ndarray:
         """``(T, N)``: an upper bound on :meth:`half` of every positioner, from its closest
         pair alone (the one whose planned clearance falls lowest); infinite without pairs."""
-        n_t, n = self.shared_t.shape[1], len(self.still)
+        n_t, n = self.near_t.shape[1], len(self.still)
         out = np.full((n_t, n), np.inf)
         if len(self.pairs) == 0:
             return out
@@ -867,12 +885,12 @@ class _Room:
         has = owner[first]
         rows = self._rows[first]
         other = np.where(self.pairs[rows, 0] == has, self.pairs[rows, 1], self.pairs[rows, 0])
-        out[:, has] = (self.shared_t[rows] * np.where(self.still[other], 1.0, 0.5)[:, None]).T
+        out[:, has] = (self.fraction * self.near_t[rows] * np.where(self.still[other], 1.0, 0.5)[:, None]).T
         return out
 
     def half_of(self, idx: np.ndarray) -> np.ndarray:
         """``(T, len(idx))``: :meth:`half` of the positioners ``idx`` at once (the same values)."""
-        n_t = self.shared_t.shape[1]
+        n_t = self.near_t.shape[1]
         out = np.full((n_t, len(idx)), np.inf)
         sizes = self._offsets[idx + 1] - self._offsets[idx]
         total = int(sizes.sum())
@@ -882,7 +900,7 @@ class _Room:
         rows_all = self._rows[np.arange(total) - np.repeat(starts_all, sizes) + np.repeat(self._offsets[idx], sizes)]
         owner = np.repeat(idx, sizes)
         other = np.where(self.pairs[rows_all, 0] == owner, self.pairs[rows_all, 1], self.pairs[rows_all, 0])
-        values = self.shared_t[rows_all] * np.where(self.still[other], 1.0, 0.5)[:, None]  # (rows, T)
+        values = self.fraction * self.near_t[rows_all] * np.where(self.still[other], 1.0, 0.5)[:, None]  # (rows, T)
         has = np.flatnonzero(sizes)
         out[:, has] = np.minimum.reduceat(values, starts_all[has], axis=0).T
         return out
@@ -892,7 +910,7 @@ class _Room:
         recorded deviation."""
         rows, other = self._others(i)
         if len(rows) == 0:
-            return np.full(self.shared_t.shape[1], np.inf)
+            return np.full(self.near_t.shape[1], np.inf)
         return np.maximum((fraction * self.clear[:, rows] - self.deviation[:, other]).min(axis=1), 0.0)
 
     def record(self, i: int, fits: dict[tuple[int, int], JointProfile], times: np.ndarray, q: np.ndarray, refine: int = 1) -> None:
