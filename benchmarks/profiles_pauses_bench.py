@@ -75,11 +75,16 @@ def main() -> None:
     parser.add_argument("--planner", default="mpc")
     parser.add_argument("--seeds", required=True, help="comma-separated seeds")
     parser.add_argument("--cache", type=Path, help="directory of plans kept as .h5 and reused")
+    parser.add_argument("--ways", default=",".join(WAYS), help=f"comma-separated, of {', '.join(WAYS)}")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     import fiberplan as fp
 
     seeds = [int(s) for s in args.seeds.split(",")]
+    ways = args.ways.split(",")
+    unknown = sorted(set(ways) - set(WAYS))
+    if unknown:
+        parser.error(f"--ways: unknown {unknown}; choose from {', '.join(WAYS)}")
     meta = {"benchmark": "profiles_pauses", "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
             "machine": machine_info(), "command": " ".join(sys.argv)}
     rows = []
@@ -93,16 +98,16 @@ def main() -> None:
                 cached.parent.mkdir(parents=True, exist_ok=True)
                 fp.save_result(result, cached)
         row = {"seed": seed, "plan_wall_s": result.plan_wall_s, "reached": fp.summarize(result)["reached"],
-               **{way: discretised(result, way) for way in WAYS}}
+               **{way: discretised(result, way) for way in ways}}
         rows.append(row)
         print(seed, {k: (v["motor_violations"], v["segments_sum"]) for k, v in row.items() if isinstance(v, dict)}, flush=True)
-        args.out.write_text(json.dumps(meta | {"rows": rows, "totals": totals(rows)}, indent=1))
+        args.out.write_text(json.dumps(meta | {"rows": rows, "totals": totals(rows, ways)}, indent=1))
 
 
-def totals(rows: list[dict]) -> dict:
+def totals(rows: list[dict], ways: list[str]) -> dict:
     """Over the rows: runs with violations, violations and segments, each way."""
     out = {}
-    for way in WAYS:
+    for way in ways:
         growth = [r[way]["makespan_after_s"] / r[way]["makespan_before_s"] - 1 for r in rows if r[way]["makespan_before_s"] > 0]
         share = [r[way]["discretise_s"] / r["plan_wall_s"] for r in rows if r["plan_wall_s"]]
         out[way] = {"runs": len(rows), "runs_with_violations": sum(r[way]["motor_violations"] > 0 for r in rows),
