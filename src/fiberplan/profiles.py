@@ -726,6 +726,13 @@ class _Fitter:
             return np.zeros(n, dtype=bool)
         changed = joints[1:] != joints[:-1]  # (T - 1, N, 2)
         moving = changed.any(axis=0)  # (N, 2)
+        # A joint that holds still between two moves rarely fits one segment; where every positioner
+        # has such a joint (each move in two legs through the datum), the search alone fits them (the
+        # same profiles: it takes one segment wherever this pass would).
+        moved = np.logical_or.accumulate(changed, axis=0)  # (T - 1, N, 2): has moved by then
+        resumes = (changed[1:] & ~changed[:-1] & moved[:-1]).any(axis=0)  # (N, 2): moves again after holding
+        if np.all(resumes.any(axis=1) | ~moving.any(axis=1)):
+            return np.zeros(n, dtype=bool)
         ok = np.ones(n, dtype=bool)
         cols = np.arange(n)
         lows = (0.0, 0.0) if inst.motors.min_speed_rad_s is None else inst.motors.min_speed_rad_s
