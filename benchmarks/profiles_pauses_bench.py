@@ -59,6 +59,7 @@ def discretised(result, way: str) -> dict:
         "pauses": made.stats["pauses"],
         "pauses_run_through": made.stats["pauses_run_through"],
         "segments_sum": int(counts.sum()),
+        "segments_hist": {str(k): int(v) for k, v in zip(*np.unique(counts[counts > 0], return_counts=True), strict=True)},
         "segments_max": int(counts.max()),
         "moving_segments_max": int(moving.max()) if len(moving) else 0,
         "makespan_before_s": made.stats["makespan_before_s"],
@@ -104,6 +105,15 @@ def main() -> None:
         args.out.write_text(json.dumps(meta | {"rows": rows, "totals": totals(rows, ways)}, indent=1))
 
 
+def segment_percentiles(figures: list[dict]) -> dict:
+    """Segments per moving joint (holds between moves included) over the runs: median, p95, max."""
+    counts = np.concatenate([np.repeat([int(k) for k in f["segments_hist"]], list(f["segments_hist"].values())) for f in figures]) \
+        if figures else np.zeros(0)
+    if not len(counts):
+        return {}
+    return {"segments_median": float(np.median(counts)), "segments_p95": float(np.percentile(counts, 95)), "segments_max": int(counts.max())}
+
+
 def totals(rows: list[dict], ways: list[str]) -> dict:
     """Over the rows: runs with violations, violations and segments, each way."""
     out = {}
@@ -117,6 +127,7 @@ def totals(rows: list[dict], ways: list[str]) -> dict:
                     "discretise_over_plan_median": float(np.median(share)) if share else None,
                     "motor_violations": sum(r[way]["motor_violations"] for r in rows),
                     "segments_sum": sum(r[way]["segments_sum"] for r in rows),
+                    **segment_percentiles([r[way] for r in rows if "segments_hist" in r[way]]),
                     "discretise_s_median": float(np.median([r[way]["discretise_s"] for r in rows]))}
     return out
 
