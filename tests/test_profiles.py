@@ -517,3 +517,21 @@ def test_knots_of_one_segment_are_the_sums():
         np.testing.assert_array_equal(times, prof.start_s + np.concatenate([[0.0], np.cumsum(prof.durations_s)]))
         np.testing.assert_array_equal(angles, prof.start_rad + np.concatenate([[0.0], np.cumsum(prof.speeds_rad_s * prof.durations_s)]))
         assert not times.flags.writeable
+
+
+def test_each_samples_room_is_the_least_clearance_of_it_and_its_neighbours():
+    """:func:`_near`, in blocks and in place on a pair-major table (as the verifier stores it),
+    gives each sample the least of its own and its two neighbours' clearances, floored at zero;
+    a table in another layout is left as it was."""
+    from fiberplan.profiles import _NEAR_ROWS, _near
+
+    rng = np.random.default_rng(3)
+    clear = np.asfortranarray(rng.uniform(-0.5, 5.0, (40, 2 * _NEAR_ROWS + 7)))  # (T, P), pairs in three blocks
+    padded = np.pad(clear, ((1, 1), (0, 0)), mode="edge")
+    expected = np.maximum(np.minimum(np.minimum(padded[:-2], padded[1:-1]), padded[2:]), 0.0)
+    c_ordered = np.ascontiguousarray(clear)
+    kept = c_ordered.copy()
+    assert _near(clear) is clear
+    np.testing.assert_array_equal(clear, expected)
+    np.testing.assert_array_equal(_near(c_ordered), expected)
+    np.testing.assert_array_equal(c_ordered, kept)
