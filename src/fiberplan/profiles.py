@@ -297,6 +297,11 @@ def discretise_trajectory(
     return Profiles(scenario, joints, report, stats)
 
 
+def _named(report: VerificationReport) -> set[int]:
+    """The ids of the positioners in a collision or beyond a hard stop or top speed in ``report``."""
+    return {e.id_i for e in report.collisions} | {e.id_j for e in report.collisions} | {v.positioner_id for v in report.limit_violations}
+
+
 def _quality(made: tuple[dict[tuple[int, int], JointProfile], VerificationReport, dict[str, Any]]) -> tuple[int, float, int]:
     """What makes one set of verified profiles better than another: fewer motor-limit
     violations, then a shorter makespan, then fewer segments."""
@@ -351,7 +356,7 @@ def _dechatter(
         verify_s += time.perf_counter() - checked
         if report.ok:
             return (candidate, pairs, _near(clear)), changed, verify_s
-        named = {e.id_i for e in report.collisions} | {e.id_j for e in report.collisions} | {v.positioner_id for v in report.limit_violations}
+        named = _named(report)
         if not named:
             return None, 0, verify_s
         keep |= {scenario.index_of(ident) for ident in named}
@@ -379,7 +384,7 @@ def _attempt(
         verify_s += time.perf_counter() - checked
         if report.ok:
             break
-        named = {e.id_i for e in report.collisions} | {e.id_j for e in report.collisions} | {v.positioner_id for v in report.limit_violations}
+        named = _named(report)
         if rounds > REFIT_ROUNDS or not named:
             raise ProfileError(f"the profiles of positioners {sorted(named)} could not be verified, even on their planned samples; "
                                "nothing exported")
@@ -461,7 +466,7 @@ def _stretch_pauses(
             better = (len(report.motor_violations) <= len(paused_report.motor_violations)
                       and candidate.segment_counts().sum() < paused.segment_counts().sum())
             return ((candidate, rebuilt, report, sum(sum(sum(f) for f in plan.values()) for plan in mask.values())) if better else None), verify_s
-        named = {e.id_i for e in report.collisions} | {e.id_j for e in report.collisions} | {v.positioner_id for v in report.limit_violations}
+        named = _named(report)
         if not named:
             return None, verify_s
         keep |= {scenario.index_of(ident) for ident in named}
