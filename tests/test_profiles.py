@@ -535,3 +535,28 @@ def test_each_samples_room_is_the_least_clearance_of_it_and_its_neighbours():
     np.testing.assert_array_equal(clear, expected)
     np.testing.assert_array_equal(_near(c_ordered), expected)
     np.testing.assert_array_equal(c_ordered, kept)
+
+
+def test_the_search_split_with_a_forked_process_gives_the_same_profiles(desi_random_61, monkeypatch):
+    """Half of the positioners to search fitted in a forked process (from FORK_SEARCH of them on):
+    the same profiles, deviations and counts as one process, bit for bit."""
+    from fiberplan import _fork
+    from fiberplan import profiles as module
+
+    if not _fork.can_fork():
+        pytest.skip("fork is not available here (one core, no fork start method, or a daemonic process)")
+    run = fp.plan(desi_random_61, "dnf")
+    calls = []
+    real_both = _fork.both
+    monkeypatch.setattr(_fork, "both", lambda first, second: calls.append(1) or real_both(first, second))
+    monkeypatch.setattr(module, "FORK_SEARCH", 2)
+    forked = fp.discretise(run)
+    monkeypatch.setattr(module, "FORK_SEARCH", 10**9)
+    alone = fp.discretise(run)
+    assert calls, "the search was not split"
+    assert forked.joints.keys() == alone.joints.keys()
+    for key, prof in alone.joints.items():
+        np.testing.assert_array_equal(forked.joints[key].durations_s, prof.durations_s)
+        np.testing.assert_array_equal(forked.joints[key].speeds_rad_s, prof.speeds_rad_s)
+        assert (forked.joints[key].start_s, forked.joints[key].start_rad) == (prof.start_s, prof.start_rad)
+    assert forked.stats["relaxed_segments"] == alone.stats["relaxed_segments"]

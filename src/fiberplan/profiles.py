@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from fiberplan import _fork
 from fiberplan.errors import ProfileError
 from fiberplan.geometry import point_extents
 from fiberplan.instrument import Instrument, MotorLimits
@@ -61,6 +62,7 @@ REFIT_FRACTION = 0.9  # share of a pair's planned clearance a positioner refitte
 WIDER_FRACTIONS = (0.7, 0.9)  # shares of the planned clearances tried in turn where the pauses leave motor-limit violations
 REFINE = 5  # a positioner that breaks a motor limit is fitted again with this many breakpoint instants per sample interval
 DECHATTER = True  # where the pauses leave violations or lengthen the makespan, a fit from the smoothed samples is tried (:func:`_dechatter`)
+FORK_SEARCH = 200  # positioners to search from which half of them are fitted in a forked process (SDSS 547: all of them)
 CHATTER_SHARE = 0.02  # a plan whose joints turn back after this share of their moving steps is fitted from its smoothed samples first
 DECHATTER_GROWTH = 0.05  # the share of the makespan the pauses may add before the smoothed samples are tried
 DECHATTER_ROUNDS = 3  # verifications of the smoothed samples, each keeping as planned the positioners found in a collision
@@ -701,8 +703,7 @@ class _Fitter:
         limit in the room their neighbours leave; last, for those still short, the neighbours
         make room (each fitted in a quarter of its half, kept only if it breaks no limit)."""
         done = self._straight_pass() if ONE_SEGMENT_SHORTCUTS else np.zeros(self.joints.shape[1], dtype=bool)
-        for i in np.flatnonzero(~done).tolist():
-            self.relaxed[i] = self._fit(i, self.room.half(i))
+        self._search(np.flatnonzero(~done).tolist())
         for _ in range(REFIT_PASSES):
             for i in np.argsort(-self.relaxed, kind="stable")[: np.count_nonzero(self.relaxed)].tolist():
                 self._refit(i, fraction)
@@ -712,6 +713,29 @@ class _Fitter:
                 if self.relaxed[j] or not kept or self._fit(j, self.room.half(j) * NARROWING):
                     self._restore(j, kept)
             self._refit(i, fraction)
+
+    def _search(self, todo: list[int]) -> None:
+        """Fit the positioners ``todo`` by the search, each in half of each pair's room: from
+        :data:`FORK_SEARCH` of them on, every other one in a forked process (:mod:`fiberplan._fork`)
+        while the rest are fitted here. Each fit depends only on the planned samples and clearances,
+        so the profiles, deviations and counts are those of one process, bit for bit."""
+
+        def fit(idx: list[int]) -> tuple[dict[tuple[int, int], JointProfile], np.ndarray, np.ndarray]:
+            for i in idx:
+                self.relaxed[i] = self._fit(i, self.room.half(i))
+            mine = set(idx)
+            fitted = {key: prof for key, prof in self.fits.items() if key[0] in mine}
+            return fitted, self.room.deviation[:, idx], self.relaxed[idx]
+
+        if len(todo) < FORK_SEARCH or not _fork.can_fork():
+            fit(todo)
+            return
+        here, there = todo[0::2], todo[1::2]
+        _, (fitted, deviation, relaxed), forked = _fork.both(lambda: fit(here), lambda: fit(there))
+        if forked:
+            self.fits.update(fitted)
+            self.room.deviation[:, there] = deviation
+            self.relaxed[there] = relaxed
 
     def _straight_pass(self) -> np.ndarray:
         """Fit at once, with numpy over all positioners, those each of whose moving joints
