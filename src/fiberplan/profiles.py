@@ -26,7 +26,11 @@ algorithm and its guarantee are in ``formulations/profiles.md``; in short:
    and a hold (:func:`_mend_creeps`); where a joint would still reverse without a stop or jump in
    speed beyond the motors' limit, every positioner holds still for one sample step at that
    instant (:func:`_paused`: a stop and a start are exempt from both limits; a held
-   configuration is one already verified). The result is verified again.
+   configuration is one already verified); a joint moving through a pause runs through it,
+   a little slower, where its motors allow (:func:`_stretchable`). The result is verified again.
+5. **Smoothed samples.** Where a plan chatters (a joint turning back at every sample where it
+   waits at a neighbour, as the dnf's plans do), the fit is made from its samples with each
+   zigzag replaced by its midline (:func:`_dechattered`), verified first; the better fit is kept.
 """
 
 from __future__ import annotations
@@ -214,10 +218,16 @@ def discretise_trajectory(
             becomes a move at the minimum and a hold (:func:`_mend_creeps`); where a joint still
             reverses without a stop or changes speed by more than the motors allow, every
             positioner holds still for one sample step (or command period) at that instant
-            (:func:`_paused`): the makespan grows by the pauses. Where violations are still
-            left, the fit is made again in wider shares of the planned clearances
-            (:data:`WIDER_FRACTIONS`: fewer breakpoints to mend) and the verified profiles with
-            the fewest violations are kept (``stats["fraction"]``, ``stats["fractions_tried"]``).
+            (:func:`_paused`): the makespan grows by the pauses, and joints moving through a
+            pause run through it where they can (:data:`STRETCH_PAUSES`). Where that leaves
+            violations or adds more than :data:`DECHATTER_GROWTH` of makespan, or where the plan
+            chatters (:data:`CHATTER_SHARE`, then first), the fit is made from the planned
+            samples with their zigzags smoothed and verified (:func:`_dechatter`,
+            ``stats["source"]``). Where violations are still left, the fit is made again in
+            wider shares of the planned clearances (:data:`WIDER_FRACTIONS`: fewer breakpoints
+            to mend). The verified profiles with the fewest violations, then the shortest
+            makespan, then the fewest segments are kept (``stats["fraction"]``,
+            ``stats["fractions_tried"]``, ``stats["sources_tried"]``).
 
     Returns:
         :class:`Profiles` with ``report.ok`` true.
@@ -250,8 +260,8 @@ def discretise_trajectory(
         (:func:`_quality`)."""
         nonlocal best, verify_s
         try:
-            source, pairs_of, clear_of = sources[name]
-            made = _attempt(scenario, source, inst, pairs_of, clear_of, f, pauses)
+            samples, pairs_of, near_of = sources[name]
+            made = _attempt(scenario, samples, inst, pairs_of, near_of, f, pauses)
         except ProfileError as e:
             failed.append(e)  # profiles that cannot be verified: the others stand
             return
