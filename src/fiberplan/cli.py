@@ -105,6 +105,9 @@ def _motor_text(v: Any) -> str:
         what = f"changes speed by {v.value:.0%} between two commands (limit {v.limit:.0%})"
     elif v.kind == "reversal":
         what = f"reverses without stopping (a speed jump of {_deg(math.degrees(v.value))} deg/s)"
+    elif v.kind == "acceleration":
+        what = (f"accelerates at {_deg(math.degrees(v.value))} deg/s^2 as executed with the ramps, above "
+                f"{_deg(math.degrees(v.limit))} deg/s^2 (reversing with less than a ramp time of stop)")
     elif v.kind == "start_stops":
         what = f"starts from rest {int(v.value)} times (limit {int(v.limit)})"
     else:
@@ -334,16 +337,19 @@ def verify(file: Path | None, as_json: bool, max_events: int, instrument: str | 
     from fiberplan.verify import check_run_file
     from fiberplan.verify import verify as run_verify
 
+    from fiberplan.ramps import verify_commands
+
     geometry = _instrument_arg(instrument) if instrument is not None else None
-    if paths_file is not None:
+    if paths_file is not None:  # motor commands: also as the motors execute them, where the instrument states a ramp time
         file = paths_file
         run = _paths_run(paths_file, scenario_file)
-        report = run_verify(run.scenario, run.trajectory, instrument=None if geometry is None else geometry[0])
+        report = verify_commands(run.scenario, run.trajectory, instrument=None if geometry is None else geometry[0])
     elif file is not None:
-        from fiberplan.profile_io import rebuilt_matches
+        from fiberplan.profile_io import holds_profiles, rebuilt_matches
 
         run = read_run(file)
-        report = run_verify(run.scenario, run.trajectory, instrument=None if geometry is None else geometry[0])
+        check = verify_commands if holds_profiles(file) else run_verify
+        report = check(run.scenario, run.trajectory, instrument=None if geometry is None else geometry[0])
         mismatches, warnings = check_run_file(run)
         report.file_mismatches.extend(mismatches)
         differs = rebuilt_matches(run)

@@ -138,6 +138,11 @@ class MotorLimits:
             (used by :mod:`fiberplan.profiles`).
         max_start_stops: most start-stop cycles per joint in one move (reference 003's nSSC): a
             joint may start moving from rest at most this many times.
+        ramp_time_s: how long the controller takes to change a joint's speed: each commanded
+            speed change is a linear ramp over this time, starting at the command (a start from
+            rest to the top speed takes it whole; the acceleration limit is the top speed over
+            it). From the file's ``ramp_time_s``, or from ``max_acceleration_rpm_per_s`` as the
+            longest of the joints' top speed over acceleration (:mod:`fiberplan.ramps`).
     """
 
     min_speed_rad_s: tuple[float, float] | None = None
@@ -146,19 +151,22 @@ class MotorLimits:
     stop_before_reversing: bool = False
     command_period_s: float | None = None
     max_start_stops: int | None = None
+    ramp_time_s: float | None = None
 
     def unstated(self) -> list[str]:
         """The limits not stated (unconstrained), by their file key."""
         given = {"min_speed_rpm": self.min_speed_rad_s, "max_speed_change": self.max_speed_change,
                  "max_segments": self.max_segments, "stop_before_reversing": self.stop_before_reversing or None,
-                 "command_period_s": self.command_period_s, "max_start_stops": self.max_start_stops}
+                 "command_period_s": self.command_period_s, "max_start_stops": self.max_start_stops,
+                 "ramp_time_s": self.ramp_time_s}
         return [key for key, value in given.items() if value is None]
 
     @property
     def stated(self) -> bool:
         """Whether any limit is given."""
         return (self.min_speed_rad_s is not None or self.max_speed_change is not None or self.max_segments is not None
-                or self.stop_before_reversing or self.command_period_s is not None or self.max_start_stops is not None)
+                or self.stop_before_reversing or self.command_period_s is not None or self.max_start_stops is not None
+                or self.ramp_time_s is not None)
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,7 @@ ZONE_SHAPES = ("polygon", "rectangle")
 INTERACTION_KEYS = ("pairs",)
 BETA_CONVENTIONS = ("extended", "folded")
 MOTOR_KEYS = ("min_speed_rpm", "max_speed_change", "max_segments", "stop_before_reversing", "command_period_s",
-              "max_start_stops")
+              "max_start_stops", "ramp_time_s", "max_acceleration_rpm_per_s")
 
 
 def check_instrument(instrument: Instrument) -> None:
@@ -230,8 +230,10 @@ def _interactions(data: dict[str, Any], origin: str) -> tuple[tuple[str, str], .
     return tuple((a, b) for a, b in pairs)
 
 
-def _motors(data: dict[str, Any], origin: str) -> MotorLimits:
-    """The optional ``[motors]`` table: each key optional, absent = unconstrained."""
+def _motors(data: dict[str, Any], origin: str, top_rad_s: tuple[float, float]) -> MotorLimits:
+    """The optional ``[motors]`` table: each key optional, absent = unconstrained. A ramp is
+    given as ``ramp_time_s`` or as ``max_acceleration_rpm_per_s`` (alpha, beta), not both; the
+    latter becomes the ramp time of the joint slowest to reach its top speed (``top_rad_s``)."""
     if "motors" not in data:
         return MotorLimits()
     table = _table(data, "motors", origin)
@@ -258,7 +260,19 @@ def _motors(data: dict[str, Any], origin: str) -> MotorLimits:
     cycles = table.get("max_start_stops")
     if cycles is not None and (isinstance(cycles, bool) or not isinstance(cycles, int) or cycles < 1):
         raise InstrumentError(f"{where}: max_start_stops must be an integer >= 1, found {cycles!r}")
-    return MotorLimits(minimum, change, segments, reverse, period, cycles)
+    ramp = None
+    if "ramp_time_s" in table and "max_acceleration_rpm_per_s" in table:
+        raise InstrumentError(f"{where}: give ramp_time_s or max_acceleration_rpm_per_s, not both (one ramp time follows from the other)")
+    if "ramp_time_s" in table:
+        ramp = _number(table, "ramp_time_s", where)
+        if not ramp > 0:
+            raise InstrumentError(f"{where}: ramp_time_s must be > 0 seconds (leave it out for instant speed changes), found {ramp!r}")
+    elif "max_acceleration_rpm_per_s" in table:
+        acc = _pair(table, "max_acceleration_rpm_per_s", where, unit="rpm per second (alpha, beta)")
+        if not min(acc) > 0:
+            raise InstrumentError(f"{where}: max_acceleration_rpm_per_s must be > 0 for both joints, found {list(acc)}")
+        ramp = max(top / (a * _RPM_TO_RAD_S) for top, a in zip(top_rad_s, acc, strict=True))
+    return MotorLimits(minimum, change, segments, reverse, period, cycles, ramp)
 
 
 def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> Instrument:
@@ -340,7 +354,8 @@ def instrument_from_dict(data: dict[str, Any], origin: str = "instrument") -> In
             sources={str(k): str(v) for k, v in sources.items()},
             planner_defaults=copy.deepcopy(dict(defaults)),
             spec=copy.deepcopy(data),
-            motors=_motors(data, origin),
+            motors=_motors(data, origin, (_number(motion, "alpha_speed_rpm", where_m) * _RPM_TO_RAD_S,
+                                          _number(motion, "beta_speed_rpm", where_m) * _RPM_TO_RAD_S)),
         )
         check_instrument(instrument)
         return instrument

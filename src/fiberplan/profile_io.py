@@ -316,6 +316,12 @@ def _profile_rows(path: Path, origin: str) -> list[dict[str, Any]] | None:
             for k, (ident, joint, seg) in enumerate(zip(ids, joints, segments, strict=True))]
 
 
+def holds_profiles(path: Path) -> bool:
+    """Whether a trajectory file holds motor profiles (a ``/profiles`` group): its trajectory is then motor commands."""
+    with h5py.File(path, "r") as f:
+        return "profiles" in f
+
+
 def _read_h5(path: Path, scenario: Scenario | None, origin: str) -> tuple[Scenario, Trajectory, str]:
     from fiberplan.trajectory import read_run
 

@@ -49,7 +49,8 @@ from fiberplan.geometry import point_extents
 from fiberplan.instrument import Instrument, MotorLimits
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult, Trajectory
-from fiberplan.verify import VerificationReport, verify, verify_with_clearances
+from fiberplan.ramps import verify_commands
+from fiberplan.verify import VerificationReport, verify_with_clearances
 
 JOINTS = ("alpha", "beta")
 DEFAULT_FRACTION = 0.5  # f: the share of a pair's planned clearance the two profiles may use
@@ -193,6 +194,7 @@ def limits_applied(instrument: Instrument) -> dict[str, Any]:
         "stop_before_reversing": motors.stop_before_reversing,
         "max_segments": motors.max_segments,
         "command_period_s": motors.command_period_s,
+        "ramp_time_s": motors.ramp_time_s,
     }
 
 
@@ -392,7 +394,7 @@ def _attempt(
         profiles = Profiles(scenario, dict(sorted(fitter.fits.items())))
         checked = time.perf_counter()
         rebuilt = profiles.trajectory()
-        report = verify(scenario, rebuilt, instrument=inst)
+        report = verify_commands(scenario, rebuilt, instrument=inst)
         verify_s += time.perf_counter() - checked
         if report.ok:
             break
@@ -410,6 +412,8 @@ def _attempt(
     pause_times: list[float] = []
     mended = n_stretched = 0
     pause_s = max(float(np.median(np.diff(times))) if len(times) > 1 else 0.0, inst.motors.command_period_s or 0.0)  # one sample step
+    if inst.motors.ramp_time_s is not None:  # a stop between opposite moves lasts a ramp: the executed speed then turns at the limit
+        pause_s = max(pause_s, inst.motors.ramp_time_s)
     if pauses and report.motors_checked and report.motor_violations and pause_s > 0.0:
         # Creeps first (they may add transitions), then pauses; the first variant the verifier passes is kept.
         variants = [True, False] if inst.motors.min_speed_rad_s is not None and inst.motors.command_period_s is None else [False]
@@ -423,7 +427,7 @@ def _attempt(
             candidate = Profiles(scenario, _paused(joints_now, times_now, pause_s) if times_now else joints_now)
             checked = time.perf_counter()
             candidate_rebuilt = candidate.trajectory()
-            candidate_report = verify(scenario, candidate_rebuilt, instrument=inst)
+            candidate_report = verify_commands(scenario, candidate_rebuilt, instrument=inst)
             verify_s += time.perf_counter() - checked
             if candidate_report.ok:  # held configurations are the profiles' own; a mended creep moves a hair: checked
                 profiles, rebuilt, report, pause_times, mended = candidate, candidate_rebuilt, candidate_report, times_now, n_mended
@@ -444,7 +448,7 @@ def _attempt(
         "followed_samples": sorted(set(followed)),
         "relaxed_segments": int(fitter.relaxed.sum()),
         "makespan_before_s": _makespan(times, joints),
-        "makespan_after_s": _makespan(rebuilt.times, rebuilt.joints),
+        "makespan_after_s": _executed_makespan(_makespan(rebuilt.times, rebuilt.joints), inst),
     }
     return profiles.joints, report, stats, verify_s
 
@@ -472,7 +476,7 @@ def _stretch_pauses(
         candidate = Profiles(scenario, _paused(joints, pause_times, pause_s, mask, lows))
         checked = time.perf_counter()
         rebuilt = candidate.trajectory()
-        report = verify(scenario, rebuilt, instrument=inst)
+        report = verify_commands(scenario, rebuilt, instrument=inst)
         verify_s += time.perf_counter() - checked
         if report.ok:
             better = (len(report.motor_violations) <= len(paused_report.motor_violations)
@@ -490,22 +494,29 @@ _MOVING = 1e-9  # rad/s: the verifier's threshold of a moving command
 
 def _breaks(a: float, b: float, motors: MotorLimits) -> bool:
     """Whether a moving segment at speed ``b`` right after one at ``a`` breaks the motors' limits:
-    a reversal without a stop (``stop_before_reversing``) or a speed change beyond
-    ``max_speed_change`` of the first (a stop or a start between them is exempt from both)."""
+    a reversal without a stop (``stop_before_reversing``, or a ramp time: a reversal ramps
+    through twice the speed change) or a speed change beyond ``max_speed_change`` of the first
+    (a stop or a start between them is exempt from both)."""
     if abs(a) <= _MOVING or abs(b) <= _MOVING:
         return False
-    return (motors.stop_before_reversing and a * b < 0) or (
+    return ((motors.stop_before_reversing or motors.ramp_time_s is not None) and a * b < 0) or (
         motors.max_speed_change is not None and a * b > 0 and abs(b - a) / abs(a) > motors.max_speed_change * (1 + 1e-9))
 
 
 def _pause_times(joints: dict[tuple[int, int], JointProfile], motors: MotorLimits) -> list[float]:
     """The breakpoints (s) where some joint's consecutive moving segments break the motors'
-    limits (:func:`_breaks`): what a stop of everyone there mends."""
+    limits (:func:`_breaks`), or (with a ramp time) where a joint reverses across a stop shorter
+    than a ramp: what a stop of everyone there (of at least a ramp) mends."""
     found: list[float] = []
+    ramp = motors.ramp_time_s
     for prof in joints.values():
         t_knot, _ = prof.knots()
         speeds = prof.speeds_rad_s.tolist()
         found += [float(t_knot[k]) for k in range(1, len(speeds)) if _breaks(speeds[k - 1], speeds[k], motors)]
+        if ramp is not None:  # a reversal across a stop shorter than a ramp: the executed speed turns too fast
+            durations = prof.durations_s.tolist()
+            found += [float(t_knot[k]) for k in range(1, len(speeds) - 1)
+                      if abs(speeds[k]) <= _MOVING and durations[k] < ramp * (1 - 1e-9) and speeds[k - 1] * speeds[k + 1] < 0]
     merged: list[float] = []
     for t in sorted(found):
         if not merged or t - merged[-1] > TIME_ROUND_S:
@@ -843,6 +854,11 @@ def _makespan(times: np.ndarray, joints: np.ndarray) -> float:
     return float(times[moving[-1] + 1]) if len(moving) else 0.0
 
 
+def _executed_makespan(commanded_s: float, inst: Instrument) -> float:
+    """When the motors stop: the commands' makespan, and the last ramp where the instrument states one."""
+    return commanded_s + (inst.motors.ramp_time_s or 0.0) if commanded_s > 0.0 else commanded_s
+
+
 def _period_steps(motors: MotorLimits, times: np.ndarray) -> int:
     """Samples per command period (1 without one); the period must be a multiple of the sample step."""
     if motors.command_period_s is None or len(times) < 2:
@@ -1056,18 +1072,37 @@ def _refit_positioner(
     return best[0]
 
 
-def _allowed_speeds(prev: float, top: float, motors: MotorLimits, axis: int) -> list[tuple[float, float]]:
+def _allowed_speeds(prev: float, top: float, motors: MotorLimits, axis: int, lean: float = 0.0) -> list[tuple[float, float]]:
     """Speed intervals a segment may take after one at ``prev``: a hold, or a move between the
-    minimum and the top speed, within the speed change of ``prev`` and not reversing without a stop."""
+    minimum and the top speed, within the speed change of ``prev`` and not reversing without a
+    stop; after a hold (``prev`` 0) shorter than a ramp, only in the direction ``lean`` (its sign,
+    when not 0: the direction before the hold, :func:`_lean`)."""
     low = 0.0 if motors.min_speed_rad_s is None else motors.min_speed_rad_s[axis]
     moves = [(max(low, _TOL), top), (-top, -max(low, _TOL))]
+    if prev == 0.0 and lean != 0.0:
+        moves = [m for m in moves if (m[0] > 0) == (lean > 0)]
     if prev != 0.0:
-        if motors.stop_before_reversing or motors.max_speed_change is not None:
+        if motors.stop_before_reversing or motors.max_speed_change is not None or motors.ramp_time_s is not None:
             moves = [m for m in moves if (m[0] > 0) == (prev > 0)]
         if motors.max_speed_change is not None:
             a, b = sorted((prev * (1 - motors.max_speed_change), prev * (1 + motors.max_speed_change)))
             moves = [(max(lo, a), min(hi, b)) for lo, hi in moves]
     return [(0.0, 0.0), *[(lo, hi) for lo, hi in moves if lo <= hi]]
+
+
+def _lean(stack: list[_Node], times: np.ndarray, m: int, ramp: float | None) -> float:
+    """With a ramp time: the speed of the last move before a hold that ends at sample ``m`` (the
+    top of ``stack`` is the hold's last breakpoint before ``m``) if the hold has lasted less than
+    a ramp (a reversal then would turn the executed speed too fast), else 0."""
+    if ramp is None:
+        return 0.0
+    idx = len(stack) - 1
+    while idx > 0 and stack[idx].speed == 0.0:
+        idx -= 1
+    before = stack[idx].speed
+    if before == 0.0 or float(times[m] - times[stack[idx].k]) >= ramp * (1 - 1e-9):
+        return 0.0
+    return before
 
 
 def _fit_joint(
@@ -1118,11 +1153,12 @@ def _fit_joint(
             stack.append(_Node(m, p, s, []))
             continue
         cone = _cone(cor, m, p)
-        if ONE_SEGMENT_SHORTCUTS and tried < search[1] and _reaches_end(cor, cone, s):
+        lean = _lean(stack, times, m, motors.ramp_time_s) if s == 0.0 else 0.0
+        if ONE_SEGMENT_SHORTCUTS and tried < search[1] and _reaches_end(cor, cone, s, lean):
             # The search's next step from here would be that last segment (its farthest option): taken directly.
             stack += [_Node(m, p, s, []), _Node(k1, float(q[k1]), 0.0, [])]
             break
-        stack.append(_Node(m, p, s, _options(cor, m, p, s, cone)))
+        stack.append(_Node(m, p, s, _options(cor, m, p, s, cone, lean)))
     if stack and stack[-1].k == k1:
         knots = [(node.k, node.speed) for node in stack[1:]]
         ks = np.array([k0] + [k for k, _ in knots])
@@ -1184,21 +1220,21 @@ def _cone(cor: _Corridor, k: int, p: float) -> tuple[np.ndarray, np.ndarray, np.
     return js[cand], s_lo[cand], s_hi[cand], (cor.q[js[cand]] - p) / dt[cand], float(s_lo[-1]), float(s_hi[-1])
 
 
-def _reaches_end(cor: _Corridor, cone: tuple[Any, ...], prev: float) -> bool:
+def _reaches_end(cor: _Corridor, cone: tuple[Any, ...], prev: float, lean: float = 0.0) -> bool:
     """Whether one segment from the cone's apex reaches the last sample's angle inside the
     corridor at a speed the motors accept after ``prev``: exactly when :func:`_options` would
     offer the last sample first (the cone only narrows, so its last extent decides)."""
     s_lo, s_hi = cone[4], cone[5]
-    return s_lo <= s_hi + _TOL and any(max(s_lo, a) <= min(s_hi, b) + _TOL for a, b in _allowed_speeds(prev, cor.top, cor.motors, cor.axis))
+    return s_lo <= s_hi + _TOL and any(max(s_lo, a) <= min(s_hi, b) + _TOL for a, b in _allowed_speeds(prev, cor.top, cor.motors, cor.axis, lean))
 
 
-def _options(cor: _Corridor, k: int, p: float, prev: float, cone: tuple[Any, ...] | None = None) -> list[tuple[int, float]]:
+def _options(cor: _Corridor, k: int, p: float, prev: float, cone: tuple[Any, ...] | None = None, lean: float = 0.0) -> list[tuple[int, float]]:
     """Up to ``cor.branches`` next segments ``(end sample, speed)`` the motors accept after ``prev``
-    and the corridor holds (from ``cone``, :func:`_cone` at ``k, p``, if given): farthest end
-    first, then the speed nearest the path."""
+    (and ``lean``, :func:`_allowed_speeds`) and the corridor holds (from ``cone``, :func:`_cone`
+    at ``k, p``, if given): farthest end first, then the speed nearest the path."""
     ends, s_lo, s_hi, aim, _, _ = _cone(cor, k, p) if cone is None else cone
     found: list[tuple[int, float, float]] = []
-    for a, b in _allowed_speeds(prev, cor.top, cor.motors, cor.axis):
+    for a, b in _allowed_speeds(prev, cor.top, cor.motors, cor.axis, lean):
         lo = np.maximum(s_lo, a)
         hi = np.minimum(s_hi, b)
         for c in np.flatnonzero(lo <= hi + _TOL)[-cor.branches:].tolist():
@@ -1216,8 +1252,11 @@ def _relaxed_fit(cor: _Corridor) -> tuple[np.ndarray, np.ndarray, int]:
     k, p, prev = cor.k0, float(cor.q[cor.k0]), 0.0
     ks, ps = [k], [p]
     relaxed = 0
+    ramp = cor.motors.ramp_time_s
+    moved, hold_from = 0.0, k  # the last move's speed, and where the hold since began (:func:`_lean`)
     while k < cor.k1:
-        opts = _options(cor, k, p, prev)
+        short = ramp is not None and prev == 0.0 and moved != 0.0 and float(cor.times[k] - cor.times[hold_from]) < ramp * (1 - 1e-9)
+        opts = _options(cor, k, p, prev, lean=moved if short else 0.0)
         if opts:
             m, s = opts[0]
         else:
@@ -1225,6 +1264,10 @@ def _relaxed_fit(cor: _Corridor) -> tuple[np.ndarray, np.ndarray, int]:
             ends, s_lo, s_hi, aim, _, _ = _cone(cor, k, p)
             m, s = int(ends[0]), float(np.clip(np.clip(aim[0], s_lo[0], s_hi[0]), -cor.top, cor.top))
         p = float(cor.q[cor.k1]) if m == cor.k1 else p + s * float(cor.times[m] - cor.times[k])
+        if s != 0.0:
+            moved, hold_from = s, m
+        elif prev != 0.0:
+            hold_from = k
         k, prev = m, s
         ks.append(k)
         ps.append(p)

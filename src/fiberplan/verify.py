@@ -80,7 +80,7 @@ class LimitViolation:
     t_s: float
     value: float
     limit: float
-    kind: str  # "hard_stop" or "speed"; motor limits: "min_speed", "speed_change", "reversal", "segments", "start_stops"
+    kind: str  # "hard_stop" or "speed"; motor limits: "min_speed", "speed_change", "reversal", "segments", "start_stops", "acceleration"
     t_first_s: float = float("nan")
 
 
