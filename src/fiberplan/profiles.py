@@ -389,7 +389,7 @@ def _attempt(
     fitter = _Fitter(inst, times, joints, _period_steps(inst.motors, times), _Room(inst, joints, pairs, near, fraction))
     fitter.fit_all(fraction)
     followed: list[int] = []
-    rounds = 0
+    rounds = settle_pauses = 0
     while True:
         profiles = Profiles(scenario, dict(sorted(fitter.fits.items())))
         checked = time.perf_counter()
@@ -398,9 +398,16 @@ def _attempt(
         verify_s += time.perf_counter() - checked
         if report.ok:
             break
+        if inst.motors.ramp_time_s is not None and report.collisions:  # the ramps may cut a corner the commands turn
+            settled, checked_s = _settle_ramps(scenario, inst, profiles.joints, report)
+            verify_s += checked_s
+            if settled is not None:
+                profiles, rebuilt, report, settle_pauses = settled
+                break
         named = _named(report)
         if rounds > REFIT_ROUNDS or not named:
-            raise ProfileError(f"the profiles of positioners {sorted(named)} could not be verified, even on their planned samples; "
+            ramp = "" if inst.motors.ramp_time_s is None else f" as the motors execute them with {inst.motors.ramp_time_s:g} s ramps"
+            raise ProfileError(f"the profiles of positioners {sorted(named)} could not be verified{ramp}, even on their planned samples; "
                                "nothing exported")
         rounds += 1
         for ident in sorted(named):
@@ -444,6 +451,7 @@ def _attempt(
         "pause_s": pause_s * len(pause_times),
         "creeps_mended": mended,
         "pauses_run_through": n_stretched,
+        "ramp_pauses": settle_pauses,
         "refit_rounds": rounds,
         "followed_samples": sorted(set(followed)),
         "relaxed_segments": int(fitter.relaxed.sum()),
@@ -451,6 +459,60 @@ def _attempt(
         "makespan_after_s": _executed_makespan(_makespan(rebuilt.times, rebuilt.joints), inst),
     }
     return profiles.joints, report, stats, verify_s
+
+
+RAMP_ROUNDS = 3  # verifications of the pauses that let the ramps settle where the executed motion collides
+
+
+def _settle_ramps(
+    scenario: Scenario, inst: Instrument, joints: dict[tuple[int, int], JointProfile], report: VerificationReport,
+) -> tuple[tuple[Profiles, Trajectory, VerificationReport, int] | None, float]:
+    """Where the motion the motors execute collides though the commands may not (a ramp cuts the
+    corner where one joint stops and another starts): everyone holds still for a ramp time at
+    each breakpoint of the colliding positioners' joints from a ramp before the collision to a
+    ramp after its worst instant (:func:`_paused`). After such a stop every joint has settled on
+    its commanded angle, and from it both joints of a positioner ramp up together, so its
+    executed path follows its commanded one; the pair meets only configurations the commands
+    meet. Verified again, up to :data:`RAMP_ROUNDS` times. Returns ``(profiles, rebuilt,
+    report, pauses)`` or ``None``, and the time spent verifying."""
+    tau = float(inst.motors.ramp_time_s or 0.0)
+    verify_s = 0.0
+    count = 0
+    for _ in range(RAMP_ROUNDS):
+        found: set[float] = set()
+        for event in report.collisions:
+            lo, hi = event.t_first_s - tau, event.t_worst_s + tau
+            pair = [joints[key] for ident in (event.id_i, event.id_j) for key in ((scenario.index_of(ident), 0), (scenario.index_of(ident), 1))
+                    if key in joints]
+            for prof in pair:
+                t_knot, _ = prof.knots()
+                for t in t_knot[(t_knot >= lo) & (t_knot <= hi)].tolist():
+                    # a ramp before it meets one after it (a start from rest, or the end of all motion, has nothing to settle)
+                    if any(_moves_in(other, t - tau, t) for other in pair) and any(_moves_in(other, t, t + tau) for other in pair):
+                        found.add(float(t))
+        if not found:
+            return None, verify_s
+        merged: list[float] = []
+        for t in sorted(found):
+            if not merged or t - merged[-1] > TIME_ROUND_S:
+                merged.append(t)
+        joints = _paused(joints, merged, tau)
+        count += len(merged)
+        candidate = Profiles(scenario, joints)
+        checked = time.perf_counter()
+        rebuilt = candidate.trajectory()
+        report = verify_commands(scenario, rebuilt, instrument=inst)
+        verify_s += time.perf_counter() - checked
+        if report.ok:
+            return (candidate, rebuilt, report, count), verify_s
+    return None, verify_s
+
+
+def _moves_in(prof: JointProfile, a: float, b: float) -> bool:
+    """Whether the joint has a moving segment overlapping the open interval ``(a, b)``."""
+    t_knot, _ = prof.knots()
+    moving = np.abs(prof.speeds_rad_s) > _MOVING
+    return bool(np.any(moving & (t_knot[:-1] < b - TIME_ROUND_S) & (t_knot[1:] > a + TIME_ROUND_S)))
 
 
 def _stretch_pauses(

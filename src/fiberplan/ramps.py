@@ -35,6 +35,7 @@ from fiberplan.verify import LimitViolation, VerificationReport, verify
 RAMP_CHORDS = 8  # the executed motion is sampled at least this often per ramp time (the chord of a ramp's parabola
 # is then within top * tau / 512 of it: 1.5 micrometres of a 20 mm arm at 0.4 rad/s and 0.1 s)
 SAMPLE_MAX_S = 0.05  # and at least this often (the rebuilt profiles' own grid)
+_MIN_STEP_S = 1e-6  # executed samples closer than this to the previous one are left out
 _CHUNK_SAMPLES = 256  # executed samples computed at once (memory: this x positioners x 2)
 
 
@@ -82,6 +83,12 @@ def executed_motion(trajectory: Trajectory, ramp_s: float) -> Trajectory:
     pieces = np.maximum(1, np.ceil(np.diff(grid) / step - 1e-9).astype(int))
     grid = np.concatenate([*(np.linspace(a, b, k, endpoint=False) for a, b, k in zip(grid[:-1], grid[1:], pieces, strict=True)),
                            grid[-1:]])
+    keep = np.concatenate([[True], np.diff(grid) > _MIN_STEP_S])  # no sliver intervals: a chord's speed stays exact
+    if not keep[-1]:  # the last sample stays; the kept one just before it goes (unless it is the first)
+        before = int(np.flatnonzero(keep)[-1])
+        keep[before] = before == 0
+        keep[-1] = True
+    grid = grid[keep]
     area = np.concatenate([np.zeros((1, *q.shape[1:])), np.cumsum(0.5 * (q[1:] + q[:-1]) * dt, axis=0)])  # integral from t[0]
 
     def integral(x: np.ndarray) -> np.ndarray:
