@@ -110,3 +110,40 @@ def test_a_governed_plan_left_short_is_planned_again_without_the_governor(monkey
     assert result.stats["motor_governor"] == "dropped"
     assert any("motor governor left 7 positioner(s) short" in w for w in result.warnings)
     assert not fp.plan(fp.make_scenario("desi", 7, "random", 1), "mpc", {"route": "direct"}).stats.get("motor_governor")
+
+
+def test_with_a_ramp_a_fast_joint_turns_back_only_after_a_ramp_at_rest():
+    """Rule 4: a speed and an opposite one within a ramp add up to at most the top speed."""
+    ramps = MotorLimits(ramp_time_s=0.1)
+    q0 = np.array([[0.0, 0.0]])
+
+    def step(proposal: float, forward: float, backward: float) -> float:
+        recent = (np.array([[forward, 0.0]]), np.array([[backward, 0.0]]))
+        out = govern(q0, q0 + [[proposal * DT, 0.0]], np.zeros((1, 2)), np.array([[-5.0, 0.0]]), DT, ramps, TOP, LIMITS,  # noqa: RUF005
+                     recent=recent)
+        return float(out[0, 0] / DT)
+
+    assert step(-0.2, forward=0.25, backward=0.0) == 0.0  # 0.2 + 0.25 > 0.29: holds
+    assert step(-0.04, forward=0.25, backward=0.0) == pytest.approx(-0.04)  # 0.04 + 0.25 <= 0.29: may turn back slowly
+    assert step(-0.2, forward=0.0, backward=0.1) == pytest.approx(-0.2)  # the same way: free
+    assert step(-0.2, forward=0.0, backward=0.0) == pytest.approx(-0.2)  # rested a ramp: free
+
+
+def test_the_mpc_plans_on_a_ramped_instrument_keep_the_ramps():
+    """Its samples, executed as commands with the ramps, never change speed faster than they allow."""
+    import json
+
+    from fiberplan.instrument_io import load_instrument
+    from fiberplan.ramps import verify_commands
+    from fiberplan.scenario import scenario_from_dict
+
+    spec = json.loads(json.dumps(load_instrument("moons-capsules").to_dict()))
+    spec["motors"]["ramp_time_s"] = 0.2
+    data = fp.make_scenario("moons-capsules", 19, "unfold", 1).to_dict() | {"instrument": spec}
+    scenario = scenario_from_dict(data, origin="test")
+    result = fp.plan(scenario, "mpc")
+    assert fp.summarize(result)["reached"] == 19
+    report = verify_commands(scenario, result.trajectory)
+    assert report.ok and not [v for v in report.motor_violations if v.kind == "acceleration"]
+    free = fp.plan(scenario, "mpc", {"motor_limits": False})  # the same without the governor: the ramps are broken
+    assert [v for v in verify_commands(scenario, free.trajectory).motor_violations if v.kind == "acceleration"]

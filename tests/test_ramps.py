@@ -140,11 +140,16 @@ def test_profiles_with_ramps_are_verified_as_the_motors_execute_them(ramped_run,
     assert again.n_collisions == 0
     ends = commands.times[np.flatnonzero(np.any(commands.joints[1:] != commands.joints[:-1], axis=(1, 2)))[-1] + 1]
     assert made.stats["makespan_after_s"] == pytest.approx(ends + 0.1)
-    for prof in made.joints.values():  # every reversal waits a ramp
+    inst = ramped_run.scenario.instrument
+    reversals = 0
+    for (_, axis), prof in made.joints.items():  # a reversal within a ramp only as fast as the ramp allows
         speeds, durations = prof.speeds_rad_s, prof.durations_s
+        top = (inst.alpha_speed_rad_s, inst.beta_speed_rad_s)[axis]
         for k in range(1, len(speeds) - 1):
             if speeds[k] == 0.0 and speeds[k - 1] * speeds[k + 1] < 0:
-                assert durations[k] >= 0.1 - 1e-9
+                reversals += 1
+                assert durations[k] >= 0.1 - 1e-9 or abs(speeds[k - 1]) + abs(speeds[k + 1]) <= top * (1 + 1e-9)
+    assert reversals > 0
     # The exported file and the exported paths are checked as executed too.
     fp.save_result(ramped_run, tmp_path / "m.h5")
     code, out, _ = run_cli(["profiles", str(tmp_path / "m.h5"), "--out", str(tmp_path / "p.h5"), "--json"])

@@ -37,8 +37,10 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 import time
 from dataclasses import dataclass, field
+from collections.abc import Iterable, Iterator
 from typing import Any
 
 import numpy as np
@@ -428,7 +430,7 @@ def _attempt(
             joints_now, n_mended = _mend_creeps(profiles.joints, inst.motors) if creeps else (profiles.joints, 0)
             if creeps and not n_mended:
                 continue
-            times_now = _pause_times(joints_now, inst.motors)
+            times_now = _pause_times(joints_now, inst.motors, (inst.alpha_speed_rad_s, inst.beta_speed_rad_s))
             if not times_now and not n_mended:
                 break
             candidate = Profiles(scenario, _paused(joints_now, times_now, pause_s) if times_now else joints_now)
@@ -556,29 +558,34 @@ _MOVING = 1e-9  # rad/s: the verifier's threshold of a moving command
 
 def _breaks(a: float, b: float, motors: MotorLimits) -> bool:
     """Whether a moving segment at speed ``b`` right after one at ``a`` breaks the motors' limits:
-    a reversal without a stop (``stop_before_reversing``, or a ramp time: a reversal ramps
-    through twice the speed change) or a speed change beyond ``max_speed_change`` of the first
-    (a stop or a start between them is exempt from both)."""
+    a reversal without a stop (``stop_before_reversing``) or a speed change beyond
+    ``max_speed_change`` of the first (a stop or a start between them is exempt from both)."""
     if abs(a) <= _MOVING or abs(b) <= _MOVING:
         return False
-    return ((motors.stop_before_reversing or motors.ramp_time_s is not None) and a * b < 0) or (
+    return (motors.stop_before_reversing and a * b < 0) or (
         motors.max_speed_change is not None and a * b > 0 and abs(b - a) / abs(a) > motors.max_speed_change * (1 + 1e-9))
 
 
-def _pause_times(joints: dict[tuple[int, int], JointProfile], motors: MotorLimits) -> list[float]:
+def _pause_times(joints: dict[tuple[int, int], JointProfile], motors: MotorLimits, tops: tuple[float, float] = (math.inf, math.inf)) -> list[float]:
     """The breakpoints (s) where some joint's consecutive moving segments break the motors'
-    limits (:func:`_breaks`), or (with a ramp time) where a joint reverses across a stop shorter
-    than a ramp: what a stop of everyone there (of at least a ramp) mends."""
+    limits (:func:`_breaks`), or (with a ramp time) where a joint starts a segment whose speed and
+    an opposite one within the ramp before add up to more than its top speed (``tops``; the
+    executed speed would change faster than the ramps allow, :func:`_ramp_caps`): what a stop of
+    everyone there (of at least a ramp) mends."""
     found: list[float] = []
     ramp = motors.ramp_time_s
-    for prof in joints.values():
+    for key, prof in joints.items():
         t_knot, _ = prof.knots()
         speeds = prof.speeds_rad_s.tolist()
         found += [float(t_knot[k]) for k in range(1, len(speeds)) if _breaks(speeds[k - 1], speeds[k], motors)]
-        if ramp is not None:  # a reversal across a stop shorter than a ramp: the executed speed turns too fast
-            durations = prof.durations_s.tolist()
-            found += [float(t_knot[k]) for k in range(1, len(speeds) - 1)
-                      if abs(speeds[k]) <= _MOVING and durations[k] < ramp * (1 - 1e-9) and speeds[k - 1] * speeds[k + 1] < 0]
+        if ramp is not None:
+            top = tops[key[1]]
+            segments = list(zip(t_knot[:-1].tolist(), t_knot[1:].tolist(), speeds, strict=True))
+            for k in range(1, len(speeds)):
+                caps = _ramp_caps(segments[k - 1::-1], segments[k][0], top, ramp)
+                v = speeds[k]
+                if v > caps[0] * (1 + 1e-9) + _TOL or -v > caps[1] * (1 + 1e-9) + _TOL:
+                    found.append(float(t_knot[k]))
     merged: list[float] = []
     for t in sorted(found):
         if not merged or t - merged[-1] > TIME_ROUND_S:
@@ -1134,17 +1141,17 @@ def _refit_positioner(
     return best[0]
 
 
-def _allowed_speeds(prev: float, top: float, motors: MotorLimits, axis: int, lean: float = 0.0) -> list[tuple[float, float]]:
+def _allowed_speeds(prev: float, top: float, motors: MotorLimits, axis: int, caps: tuple[float, float] | None = None) -> list[tuple[float, float]]:
     """Speed intervals a segment may take after one at ``prev``: a hold, or a move between the
     minimum and the top speed, within the speed change of ``prev`` and not reversing without a
-    stop; after a hold (``prev`` 0) shorter than a ramp, only in the direction ``lean`` (its sign,
-    when not 0: the direction before the hold, :func:`_lean`)."""
+    stop; with a ramp time, at most ``caps`` (the fastest forward and backward speeds the ramp
+    allows after the speeds of the ramp before, :func:`_ramp_caps`)."""
     low = 0.0 if motors.min_speed_rad_s is None else motors.min_speed_rad_s[axis]
     moves = [(max(low, _TOL), top), (-top, -max(low, _TOL))]
-    if prev == 0.0 and lean != 0.0:
-        moves = [m for m in moves if (m[0] > 0) == (lean > 0)]
+    if caps is not None:
+        moves = [(m[0], min(m[1], caps[0])) if m[0] > 0 else (max(m[0], -caps[1]), m[1]) for m in moves]
     if prev != 0.0:
-        if motors.stop_before_reversing or motors.max_speed_change is not None or motors.ramp_time_s is not None:
+        if motors.stop_before_reversing or motors.max_speed_change is not None:
             moves = [m for m in moves if (m[0] > 0) == (prev > 0)]
         if motors.max_speed_change is not None:
             a, b = sorted((prev * (1 - motors.max_speed_change), prev * (1 + motors.max_speed_change)))
@@ -1152,19 +1159,28 @@ def _allowed_speeds(prev: float, top: float, motors: MotorLimits, axis: int, lea
     return [(0.0, 0.0), *[(lo, hi) for lo, hi in moves if lo <= hi]]
 
 
-def _lean(stack: list[_Node], times: np.ndarray, m: int, ramp: float | None) -> float:
-    """With a ramp time: the speed of the last move before a hold that ends at sample ``m`` (the
-    top of ``stack`` is the hold's last breakpoint before ``m``) if the hold has lasted less than
-    a ramp (a reversal then would turn the executed speed too fast), else 0."""
-    if ramp is None:
-        return 0.0
-    idx = len(stack) - 1
-    while idx > 0 and stack[idx].speed == 0.0:
-        idx -= 1
-    before = stack[idx].speed
-    if before == 0.0 or float(times[m] - times[stack[idx].k]) >= ramp * (1 - 1e-9):
-        return 0.0
-    return before
+def _ramp_caps(before: Iterable[tuple[float, float, float]], t0: float, top: float, ramp: float) -> tuple[float, float]:
+    """``(forward, backward)``: the fastest speeds a segment starting at ``t0`` may take under a
+    ramp time (:mod:`fiberplan.ramps`): the executed speed changes by ``v(t) - v(t - ramp)`` per
+    ramp, at most the ``top`` speed, so a speed and an opposite one commanded less than a ramp
+    before add up to at most the top. ``before``: the joint's earlier segments ``(start, end,
+    speed)``, latest first (read only as far back as a ramp)."""
+    forward = backward = 0.0
+    since = t0 - ramp * (1 - 1e-9)
+    for _, end, v in before:
+        if end <= since:
+            break
+        if v > 0.0:
+            forward = max(forward, v)
+        elif v < 0.0:
+            backward = max(backward, -v)
+    return top - backward, top - forward
+
+
+def _stack_segments(stack: list[_Node], times: np.ndarray) -> Iterator[tuple[float, float, float]]:
+    """The segments of a search path, latest first: ``(start, end, speed)``."""
+    for idx in range(len(stack) - 1, 0, -1):
+        yield float(times[stack[idx - 1].k]), float(times[stack[idx].k]), stack[idx].speed
 
 
 def _fit_joint(
@@ -1215,12 +1231,13 @@ def _fit_joint(
             stack.append(_Node(m, p, s, []))
             continue
         cone = _cone(cor, m, p)
-        lean = _lean(stack, times, m, motors.ramp_time_s) if s == 0.0 else 0.0
-        if ONE_SEGMENT_SHORTCUTS and tried < search[1] and _reaches_end(cor, cone, s, lean):
+        caps = None if motors.ramp_time_s is None else _ramp_caps(
+            itertools.chain([(float(times[node.k]), float(times[m]), s)], _stack_segments(stack, times)), float(times[m]), top, motors.ramp_time_s)
+        if ONE_SEGMENT_SHORTCUTS and tried < search[1] and _reaches_end(cor, cone, s, caps):
             # The search's next step from here would be that last segment (its farthest option): taken directly.
             stack += [_Node(m, p, s, []), _Node(k1, float(q[k1]), 0.0, [])]
             break
-        stack.append(_Node(m, p, s, _options(cor, m, p, s, cone, lean)))
+        stack.append(_Node(m, p, s, _options(cor, m, p, s, cone, caps)))
     if stack and stack[-1].k == k1:
         knots = [(node.k, node.speed) for node in stack[1:]]
         ks = np.array([k0] + [k for k, _ in knots])
@@ -1282,21 +1299,23 @@ def _cone(cor: _Corridor, k: int, p: float) -> tuple[np.ndarray, np.ndarray, np.
     return js[cand], s_lo[cand], s_hi[cand], (cor.q[js[cand]] - p) / dt[cand], float(s_lo[-1]), float(s_hi[-1])
 
 
-def _reaches_end(cor: _Corridor, cone: tuple[Any, ...], prev: float, lean: float = 0.0) -> bool:
+def _reaches_end(cor: _Corridor, cone: tuple[Any, ...], prev: float, caps: tuple[float, float] | None = None) -> bool:
     """Whether one segment from the cone's apex reaches the last sample's angle inside the
     corridor at a speed the motors accept after ``prev``: exactly when :func:`_options` would
     offer the last sample first (the cone only narrows, so its last extent decides)."""
     s_lo, s_hi = cone[4], cone[5]
-    return s_lo <= s_hi + _TOL and any(max(s_lo, a) <= min(s_hi, b) + _TOL for a, b in _allowed_speeds(prev, cor.top, cor.motors, cor.axis, lean))
+    return s_lo <= s_hi + _TOL and any(max(s_lo, a) <= min(s_hi, b) + _TOL for a, b in _allowed_speeds(prev, cor.top, cor.motors, cor.axis, caps))
 
 
-def _options(cor: _Corridor, k: int, p: float, prev: float, cone: tuple[Any, ...] | None = None, lean: float = 0.0) -> list[tuple[int, float]]:
+def _options(
+    cor: _Corridor, k: int, p: float, prev: float, cone: tuple[Any, ...] | None = None, caps: tuple[float, float] | None = None,
+) -> list[tuple[int, float]]:
     """Up to ``cor.branches`` next segments ``(end sample, speed)`` the motors accept after ``prev``
-    (and ``lean``, :func:`_allowed_speeds`) and the corridor holds (from ``cone``, :func:`_cone`
+    (and ``caps``, :func:`_allowed_speeds`) and the corridor holds (from ``cone``, :func:`_cone`
     at ``k, p``, if given): farthest end first, then the speed nearest the path."""
     ends, s_lo, s_hi, aim, _, _ = _cone(cor, k, p) if cone is None else cone
     found: list[tuple[int, float, float]] = []
-    for a, b in _allowed_speeds(prev, cor.top, cor.motors, cor.axis, lean):
+    for a, b in _allowed_speeds(prev, cor.top, cor.motors, cor.axis, caps):
         lo = np.maximum(s_lo, a)
         hi = np.minimum(s_hi, b)
         for c in np.flatnonzero(lo <= hi + _TOL)[-cor.branches:].tolist():
@@ -1315,10 +1334,10 @@ def _relaxed_fit(cor: _Corridor) -> tuple[np.ndarray, np.ndarray, int]:
     ks, ps = [k], [p]
     relaxed = 0
     ramp = cor.motors.ramp_time_s
-    moved, hold_from = 0.0, k  # the last move's speed, and where the hold since began (:func:`_lean`)
+    done: list[tuple[float, float, float]] = []  # the segments so far, latest first (:func:`_ramp_caps`)
     while k < cor.k1:
-        short = ramp is not None and prev == 0.0 and moved != 0.0 and float(cor.times[k] - cor.times[hold_from]) < ramp * (1 - 1e-9)
-        opts = _options(cor, k, p, prev, lean=moved if short else 0.0)
+        caps = None if ramp is None else _ramp_caps(done, float(cor.times[k]), cor.top, ramp)
+        opts = _options(cor, k, p, prev, caps=caps)
         if opts:
             m, s = opts[0]
         else:
@@ -1326,10 +1345,7 @@ def _relaxed_fit(cor: _Corridor) -> tuple[np.ndarray, np.ndarray, int]:
             ends, s_lo, s_hi, aim, _, _ = _cone(cor, k, p)
             m, s = int(ends[0]), float(np.clip(np.clip(aim[0], s_lo[0], s_hi[0]), -cor.top, cor.top))
         p = float(cor.q[cor.k1]) if m == cor.k1 else p + s * float(cor.times[m] - cor.times[k])
-        if s != 0.0:
-            moved, hold_from = s, m
-        elif prev != 0.0:
-            hold_from = k
+        done.insert(0, (float(cor.times[k]), float(cor.times[m]), s))
         k, prev = m, s
         ks.append(k)
         ps.append(p)

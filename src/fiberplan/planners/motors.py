@@ -15,6 +15,10 @@ constant-speed command per joint; the rules are the verifier's
 3. **Minimum speed** (``min_speed_rpm``): a moving joint turns at least the minimum speed; a
    slower proposal takes the minimum speed (a joint is never held forever short of its goal),
    or stops where the minimum lies above the band.
+4. **Ramps** (``ramp_time_s``, :mod:`fiberplan.ramps`): the controller ramps each speed change
+   over the ramp time, at most the top speed per ramp, so a speed and an opposite one commanded
+   less than a ramp before add up to at most the top speed. A joint whose step would break that
+   (turning back soon after moving fast) holds: a reversal of a fast joint waits a ramp at rest.
 
 A joint heading for its goal takes the allowed speed nearest its proposal that leaves a
 remainder the rules can still cover exactly (:func:`_arrive_in_band`), so arrivals keep the
@@ -37,12 +41,13 @@ _TOL = 1e-12
 
 def governs(motors: MotorLimits) -> bool:
     """Whether :func:`govern` changes anything under these limits."""
-    return bool(motors.stop_before_reversing or motors.max_speed_change is not None or motors.min_speed_rad_s is not None)
+    return bool(motors.stop_before_reversing or motors.max_speed_change is not None or motors.min_speed_rad_s is not None
+                or motors.ramp_time_s is not None)
 
 
 def govern(
     q: np.ndarray, q_next: np.ndarray, v_prev: np.ndarray, goal: np.ndarray, dt: float, motors: MotorLimits, top: np.ndarray,
-    limits: np.ndarray, reverse: bool = False,
+    limits: np.ndarray, reverse: bool = False, recent: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """The steps ``q -> q_next`` made acceptable to the motors (see the module docstring).
 
@@ -58,6 +63,8 @@ def govern(
         reverse: the motion is planned backwards in time, to be played reversed (the
             coordination layer's ``reverse`` legs): the speed change is then bounded relative
             to the new step, ``[|v| / (1 + c), |v| / (1 - c)]``.
+        recent: ``((N, 2), (N, 2))`` each joint's fastest forward and backward speeds (rad/s, both
+            >= 0) over the steps of the last ramp time (rule 4).
 
     Returns:
         ``(N, 2)`` the governed next configuration.
@@ -84,11 +91,16 @@ def govern(
     ahead = direction * (goal - q)  # distance still to go toward the goal (rad), >= 0 when heading there
     if c is not None:
         out = _arrive_in_band(out, ahead / dt, prev, moving_before, lo, hi, low, top, c, reverse)
+    ramp_hold = np.zeros(out.shape, dtype=bool)
+    if motors.ramp_time_s is not None and recent is not None:  # rule 4: with an opposite speed of the ramp before, at most the top
+        opposite = np.where(direction > 0, recent[1], recent[0])
+        ramp_hold = (out > _TOL) & (out + opposite > top * (1 + 1e-9))
+        out = np.where(ramp_hold, 0.0, out)
     governed = q + direction * out * dt
     # No rounding carries a joint past its goal or a hard stop; an arrival is exempt.
     passed = (out > _TOL) & (ahead >= 0) & (out * dt >= ahead * (1 - 1e-12)) & (speed * dt <= ahead + _TOL)
     governed = np.where(passed, goal, governed)
-    governed = np.where((q_next == goal) & ~(moving_before & (v * v_prev < 0)), q_next, governed)
+    governed = np.where((q_next == goal) & ~(moving_before & (v * v_prev < 0)) & ~ramp_hold, q_next, governed)
     return np.clip(governed, limits[:, 0], limits[:, 1])
 
 

@@ -43,6 +43,7 @@ positioner holds until its start.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from functools import partial
 from typing import Any
@@ -178,7 +179,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             if govern_motors:
                 proposed = q_next
                 q_next = govern(q, q_next, v_prev * inst.speeds_rad_s, goal, h, inst.motors, inst.speeds_rad_s, inst.limits_rad,
-                                reverse=reversed_leg)
+                                reverse=reversed_leg, recent=_recent_speeds(history, h, inst.motors.ramp_time_s))
                 free = stalled | (deadlocks.level != Level.NORMAL)
                 q_next[free] = proposed[free]
                 governed = np.any(q_next != proposed, axis=1)
@@ -207,6 +208,17 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         progress(1.0)
     return _result(scenario, settings, np.stack(history), stats, deadlocks, schedule, schedule_wall_s, start_step, n_slots,
                    stopped_stalled, step)
+
+
+def _recent_speeds(history: list[np.ndarray], h: float, ramp_s: float | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """Each joint's fastest forward and backward speeds (rad/s, ``(N, 2)`` each, >= 0) over the
+    executed steps that end within the last ramp time (the governor's ramp rule); ``None``
+    without a ramp."""
+    if ramp_s is None:
+        return None
+    k = max(1, math.ceil(ramp_s / h - 1e-9))
+    recent = np.diff(np.stack(history[-k - 1:]), axis=0) / h if len(history) > 1 else np.zeros((1, *history[-1].shape))
+    return np.maximum(recent, 0.0).max(axis=0), np.maximum(-recent, 0.0).max(axis=0)
 
 
 def _solve_qps(

@@ -64,7 +64,7 @@ class MpcSettings(RouteSettings):
     # --- the safety layer
     safety_margin_mm: float = setting(0.02, "smallest clearance the safety layer lets an executed step reach", unit="mm", low=0.0,
                                       high=10.0, group="safety")
-    motor_limits: bool = setting(True, "executed steps keep the instrument's motor limits (stop before reversing, speed change, "
+    motor_limits: bool = setting(True, "executed steps keep the instrument's motor limits (stop before reversing, speed change, ramps, "
                                  "minimum speed; no effect where the instrument states none)", group="safety")
     # --- deadlocks
     deadlock_window_steps: int = setting(40, "steps without progress that mark a positioner deadlocked", unit="steps", low=1,
