@@ -333,11 +333,10 @@ def verify(file: Path | None, as_json: bool, max_events: int, instrument: str | 
     if scenario_file is not None and paths_file is None:
         raise click.UsageError("--scenario goes with --paths (a trajectory file holds its scenario)")
     from fiberplan.metrics import summarize
+    from fiberplan.ramps import verify_commands
     from fiberplan.trajectory import read_run
     from fiberplan.verify import check_run_file
     from fiberplan.verify import verify as run_verify
-
-    from fiberplan.ramps import verify_commands
 
     geometry = _instrument_arg(instrument) if instrument is not None else None
     if paths_file is not None:  # motor commands: also as the motors execute them, where the instrument states a ramp time

@@ -39,8 +39,8 @@ import functools
 import itertools
 import math
 import time
-from dataclasses import dataclass, field
 from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -49,9 +49,9 @@ from fiberplan import _fork
 from fiberplan.errors import ProfileError
 from fiberplan.geometry import point_extents
 from fiberplan.instrument import Instrument, MotorLimits
+from fiberplan.ramps import verify_commands
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult, Trajectory
-from fiberplan.ramps import verify_commands
 from fiberplan.verify import VerificationReport, verify_with_clearances
 
 JOINTS = ("alpha", "beta")
