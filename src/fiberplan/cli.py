@@ -391,6 +391,9 @@ def verify(file: Path | None, as_json: bool, max_events: int, instrument: str | 
                 click.echo(f"    ... and {len(report.motor_violations) - max_events} more (use --json for all)")
         else:
             click.echo("  motor limits: the instrument states none (unconstrained)")
+        if report.executed_ramp_s is not None:
+            click.echo(f"  checked as the motors execute these commands too, each speed change ramped over {report.executed_ramp_s:g} s "
+                       f"(collisions and acceleration; the motion ends {report.executed_ramp_s:g} s after the commands)")
         if report.start_mismatch_ids:
             click.echo(f"  trajectory does not start at the scenario start for positioners {report.start_mismatch_ids[:10]}")
         for mismatch in report.file_mismatches:
@@ -511,6 +514,11 @@ def profiles(run_file: Path, out: Path, form: str | None, fraction: float, pause
     if summary["pauses"] or summary["creeps_mended"]:
         click.echo(f"  {summary['creeps_mended']} creep(s) mended, {summary['pauses']} pause(s) of everyone ({summary['pause_s']:.2f} s in all) "
                    "where a joint would creep, reverse without a stop or jump in speed (--no-pauses: leave them, reported)")
+    if limits.get("ramp_time_s") is not None:
+        settled = summary["ramp_pauses"]
+        click.echo(f"  verified as the motors execute them too, each speed change ramped over {limits['ramp_time_s']:g} s "
+                   "(makespan_after_s includes the last ramp)"
+                   + (f"; {settled} stop(s) of a ramp where a ramp cut a corner" if settled else ""))
     if summary["source"] == "dechattered":
         click.echo(f"  fitted from the planned samples with their zigzags smoothed ({summary['dechattered_samples']} samples, verified)")
     if summary["followed_samples"]:

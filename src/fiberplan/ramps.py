@@ -132,6 +132,7 @@ def verify_commands(scenario: Scenario, commands: Trajectory, instrument: Instru
     report.limit_violations.extend(executed.limit_violations)
     report.min_clearance_mm = min(report.min_clearance_mm, executed.min_clearance_mm)
     report.motor_violations.extend(_acceleration_violations(inst, scenario.ids, moved))
+    report.executed_ramp_s = tau
     return report
 
 

@@ -116,6 +116,7 @@ class VerificationReport:
     warnings: list[str] = field(default_factory=list)
     min_clearance_mm: float = float("inf")
     probes: int = 0
+    executed_ramp_s: float | None = None  # motor commands also checked as executed with this ramp time (fiberplan.ramps)
 
     @property
     def ok(self) -> bool:
@@ -158,6 +159,7 @@ class VerificationReport:
             "warnings": self.warnings,
             "min_clearance_mm": self.min_clearance_mm,
             "probes": self.probes,
+            "executed_ramp_s": self.executed_ramp_s,
         }
 
 
