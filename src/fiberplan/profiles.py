@@ -494,10 +494,7 @@ def _settle_ramps(
                         found.add(float(t))
         if not found:
             return None, verify_s
-        merged: list[float] = []
-        for t in sorted(found):
-            if not merged or t - merged[-1] > TIME_ROUND_S:
-                merged.append(t)
+        merged = _distinct(found)
         joints = _paused(joints, merged, tau)
         count += len(merged)
         candidate = Profiles(scenario, joints)
@@ -586,8 +583,13 @@ def _pause_times(joints: dict[tuple[int, int], JointProfile], motors: MotorLimit
                 v = speeds[k]
                 if v > caps[0] * (1 + 1e-9) + _TOL or -v > caps[1] * (1 + 1e-9) + _TOL:
                     found.append(float(t_knot[k]))
+    return _distinct(found)
+
+
+def _distinct(times: Iterable[float]) -> list[float]:
+    """The instants ``times`` in order, those closer than :data:`TIME_ROUND_S` to the previous one left out."""
     merged: list[float] = []
-    for t in sorted(found):
+    for t in sorted(times):
         if not merged or t - merged[-1] > TIME_ROUND_S:
             merged.append(t)
     return merged
