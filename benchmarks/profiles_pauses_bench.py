@@ -44,6 +44,23 @@ def discretised(result, way: str) -> dict:
         took = time.perf_counter() - started
     finally:
         profiles.STRETCH_PAUSES, profiles.DECHATTER = saved
+    moving = np.array([int(np.count_nonzero(p.speeds_rad_s)) for p in made.joints.values()])
+    return figures(made, took) | {
+        "fraction": made.stats["fraction"],
+        "fractions_tried": made.stats["fractions_tried"],
+        "source": made.stats["source"],
+        "sources_tried": made.stats["sources_tried"],
+        "dechattered_samples": made.stats["dechattered_samples"],
+        "pauses_run_through": made.stats["pauses_run_through"],
+        "segments_max": int(made.segment_counts().max()),
+        "moving_segments_max": int(moving.max()) if len(moving) else 0,
+    }
+
+
+def figures(made, took: float) -> dict:
+    """What every profiles benchmark records of one discretisation ``made`` (taking ``took`` s):
+    verified, motor-limit violations and their kinds, joints above 128 moving segments, pauses,
+    segments (sum, histogram), makespan before and after."""
     counts = made.segment_counts()
     moving = np.array([int(np.count_nonzero(p.speeds_rad_s)) for p in made.joints.values()])
     return {
@@ -51,17 +68,9 @@ def discretised(result, way: str) -> dict:
         "motor_violations": len(made.report.motor_violations),
         "kinds": dict(collections.Counter(v.kind for v in made.report.motor_violations)),
         "joints_over_128_moving": int(np.count_nonzero(moving > 128)),
-        "fraction": made.stats["fraction"],
-        "fractions_tried": made.stats["fractions_tried"],
-        "source": made.stats["source"],
-        "sources_tried": made.stats["sources_tried"],
-        "dechattered_samples": made.stats["dechattered_samples"],
         "pauses": made.stats["pauses"],
-        "pauses_run_through": made.stats["pauses_run_through"],
         "segments_sum": int(counts.sum()),
         "segments_hist": {str(k): int(v) for k, v in zip(*np.unique(counts[counts > 0], return_counts=True), strict=True)},
-        "segments_max": int(counts.max()),
-        "moving_segments_max": int(moving.max()) if len(moving) else 0,
         "makespan_before_s": made.stats["makespan_before_s"],
         "makespan_after_s": made.stats["makespan_after_s"],
         "discretise_s": took,

@@ -18,7 +18,6 @@ last ramp included), time::
 from __future__ import annotations
 
 import argparse
-import collections
 import datetime as dt
 import json
 import sys
@@ -29,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import machine_info
-from profiles_pauses_bench import totals
+from profiles_pauses_bench import figures, totals
 
 
 def with_ramp(name: str, ramp_s: float):
@@ -54,24 +53,11 @@ def discretised(result, inst) -> dict:
         made = discretise_trajectory(result.scenario, result.trajectory, instrument=inst)
     except ProfileError as e:
         return {"verified_ok": False, "refused": str(e), "discretise_s": time.perf_counter() - started}
-    took = time.perf_counter() - started
-    counts = made.segment_counts()
-    moving = np.array([int(np.count_nonzero(p.speeds_rad_s)) for p in made.joints.values()])
-    return {
-        "verified_ok": bool(made.report.ok),
-        "motor_violations": len(made.report.motor_violations),
-        "kinds": dict(collections.Counter(v.kind for v in made.report.motor_violations)),
-        "joints_over_128_moving": int(np.count_nonzero(moving > 128)),
+    return figures(made, time.perf_counter() - started) | {
         "min_clearance_mm": made.report.min_clearance_mm,
-        "pauses": made.stats["pauses"],
         "ramp_pauses": made.stats["ramp_pauses"],
         "refit_rounds": made.stats["refit_rounds"],
         "source": made.stats["source"],
-        "segments_sum": int(counts.sum()),
-        "segments_hist": {str(k): int(v) for k, v in zip(*np.unique(counts[counts > 0], return_counts=True), strict=True)},
-        "makespan_before_s": made.stats["makespan_before_s"],
-        "makespan_after_s": made.stats["makespan_after_s"],
-        "discretise_s": took,
         "of_which_verify_s": made.stats["of_which_verify_s"],
     }
 
