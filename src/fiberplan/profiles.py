@@ -231,7 +231,10 @@ def discretise_trajectory(
             wider shares of the planned clearances (:data:`WIDER_FRACTIONS`: fewer breakpoints
             to mend). The verified profiles with the fewest violations, then the shortest
             makespan, then the fewest segments are kept (``stats["fraction"]``,
-            ``stats["fractions_tried"]``, ``stats["sources_tried"]``).
+            ``stats["fractions_tried"]``, ``stats["sources_tried"]``). Where the instrument
+            states a ramp time, every check is also of the motion the motors execute
+            (:func:`fiberplan.ramps.verify_commands`), the fit keeps the acceleration, and
+            ``stats["makespan_after_s"]`` includes the last ramp.
 
     Returns:
         :class:`Profiles` with ``report.ok`` true.
