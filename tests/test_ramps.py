@@ -155,7 +155,9 @@ def test_profiles_with_ramps_are_verified_as_the_motors_execute_them(ramped_run,
     code, out, _ = run_cli(["profiles", str(tmp_path / "m.h5"), "--out", str(tmp_path / "p.h5"), "--json"])
     assert code == 0 and json.loads(out)["verified_ok"] is True
     code, out, _ = run_cli(["verify", str(tmp_path / "p.h5"), "--json", "--motors"])
-    assert code == 0 and json.loads(out)["report"]["motor_violations"] == []
+    assert code == 0 and json.loads(out)["report"]["motor_violations"] == [] and json.loads(out)["report"]["executed_ramp_s"] == 0.1
+    code, out, _ = run_cli(["verify", str(tmp_path / "m.h5")])  # a plan: its samples are not motor commands, and it says so
+    assert code == 0 and "a planner's samples are not checked against it" in out
     write_profiles(made, ramped_run, tmp_path / "p.json", "json")
     code, out, _ = run_cli(["verify", "--paths", str(tmp_path / "p.json"), "--json"])
     assert code == 0 and json.loads(out)["verified_ok"] is True

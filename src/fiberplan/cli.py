@@ -391,9 +391,13 @@ def verify(file: Path | None, as_json: bool, max_events: int, instrument: str | 
                 click.echo(f"    ... and {len(report.motor_violations) - max_events} more (use --json for all)")
         else:
             click.echo("  motor limits: the instrument states none (unconstrained)")
+        ramp_s = (run.scenario.instrument if geometry is None else geometry[0]).motors.ramp_time_s
         if report.executed_ramp_s is not None:
             click.echo(f"  checked as the motors execute these commands too, each speed change ramped over {report.executed_ramp_s:g} s "
                        f"(collisions and acceleration; the motion ends {report.executed_ramp_s:g} s after the commands)")
+        elif ramp_s is not None:
+            click.echo(f"  the instrument ramps speed changes over {ramp_s:g} s: a planner's samples are not checked against it; "
+                       "motor commands are (fiberplan profiles, then verify the exported file)")
         if report.start_mismatch_ids:
             click.echo(f"  trajectory does not start at the scenario start for positioners {report.start_mismatch_ids[:10]}")
         for mismatch in report.file_mismatches:
