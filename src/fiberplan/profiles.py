@@ -1251,7 +1251,41 @@ def _fit_joint(
         relaxed = 0
     else:
         durations, speeds, relaxed = _relaxed_fit(cor)
+        if relaxed and motors.ramp_time_s is not None:  # the planned samples themselves, where they break fewer limits
+            sampled = _sampled_fit(cor)
+            if sampled[2] < relaxed:
+                durations, speeds, relaxed = sampled
     return _trimmed(float(times[k0]), float(q[k0]), durations, speeds), relaxed
+
+
+def _sampled_fit(cor: _Corridor) -> tuple[np.ndarray, np.ndarray, int]:
+    """The joint's planned samples as its segments (every sample a breakpoint, on the command
+    grid), and how many of them break a motor limit (:func:`_allowed_speeds`, with the ramp's
+    caps; and each segment beyond ``max_segments``). A planner that keeps the limits in its
+    steps (the mpc's governor) leaves few: where the search runs out, following the plan can
+    then break fewer than the greedy fit (taken only with a ramp time: without one nothing
+    changes)."""
+    ks = np.arange(cor.k0, cor.k1 + 1, cor.step)
+    if ks[-1] != cor.k1:
+        ks = np.append(ks, cor.k1)
+    durations = np.diff(cor.times[ks])
+    speeds = np.diff(cor.q[ks]) / durations
+    ramp = cor.motors.ramp_time_s
+    done: list[tuple[float, float, float]] = []
+    broken = 0
+    prev = 0.0
+    tol = 1e-9 * cor.top + _TOL
+    for k, k_next, v in zip(ks[:-1].tolist(), ks[1:].tolist(), speeds.tolist(), strict=True):
+        caps = None if ramp is None else _ramp_caps(done, float(cor.times[k]), cor.top, ramp)
+        allowed = _allowed_speeds(prev, cor.top, cor.motors, cor.axis, caps)
+        if not any(a - tol <= v <= b + tol for a, b in allowed):
+            broken += 1
+        done.insert(0, (float(cor.times[k]), float(cor.times[k_next]), v))
+        prev = v
+    runs = 1 + int(np.count_nonzero(np.abs(np.diff(speeds)) > _TOL))
+    if cor.motors.max_segments is not None and runs > cor.motors.max_segments:
+        broken += runs - cor.motors.max_segments  # too many segments: each one over counts
+    return durations, speeds, broken
 
 
 @dataclass(frozen=True, eq=False)
