@@ -173,3 +173,22 @@ def test_cli_verify_lists_acceleration_of_paths_that_reverse_at_once(ramped_run,
     (tmp_path / "s.json").write_text(json.dumps(scenario.to_dict()))
     code, out, _ = run_cli(["verify", "--paths", str(tmp_path / "pts.json"), "--scenario", str(tmp_path / "s.json"), "--motors"])
     assert code == 1 and "as executed with the ramps" in out
+
+
+def test_the_planned_samples_count_what_they_break_under_the_ramps():
+    """The fallback of a joint whose search runs out (:func:`fiberplan.profiles._sampled_fit`)."""
+    from fiberplan.instrument import MotorLimits
+    from fiberplan.profiles import _Corridor, _sampled_fit
+
+    times = np.arange(8) * 0.05
+    calm = np.array([0.0, 0.0, 0.02, 0.04, 0.04, 0.04, 0.04, 0.02])  # 0.4 rad/s, a stop of 0.15 s, then back at 0.4
+    rash = np.array([0.0, 0.0, 0.02, 0.04, 0.04, 0.02, 0.0, 0.0])  # back after a stop of 0.05 s: 0.4 + 0.4 > the top 0.5
+
+    def corridor(q, motors):
+        return _Corridor(times, q, q - 1.0, q + 1.0, 1, len(q) - 1, 1, 0.5, motors, 0, 4)  # from the first move
+
+    ramps = MotorLimits(ramp_time_s=0.1)
+    durations, speeds, broken = _sampled_fit(corridor(calm, ramps))
+    assert broken == 0 and np.allclose(durations, 0.05) and np.allclose(speeds[[0, 1, 5]], [0.4, 0.4, -0.4])
+    assert _sampled_fit(corridor(rash, ramps))[2] == 1
+    assert _sampled_fit(corridor(calm, MotorLimits(ramp_time_s=0.1, max_segments=2)))[2] == 1  # three segments, one too many
