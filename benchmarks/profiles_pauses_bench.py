@@ -77,16 +77,23 @@ def figures(made, took: float) -> dict:
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def plan_arguments(doc: str, seeds_help: str) -> argparse.ArgumentParser:
+    """The options every profiles benchmark takes: which plans (instrument, size, kind, planner,
+    seeds), where they are kept (``--cache``) and where the results go (``--out``)."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
     parser.add_argument("--instrument", default="moons")
     parser.add_argument("-n", type=int, default=61)
     parser.add_argument("--kind", default="unfold")
     parser.add_argument("--planner", default="mpc")
-    parser.add_argument("--seeds", required=True, help="comma-separated seeds")
+    parser.add_argument("--seeds", required=True, help=seeds_help)
     parser.add_argument("--cache", type=Path, help="directory of plans kept as .h5 and reused")
-    parser.add_argument("--ways", default=",".join(WAYS), help=f"comma-separated, of {', '.join(WAYS)}")
     parser.add_argument("--out", type=Path, required=True)
+    return parser
+
+
+def main() -> None:
+    parser = plan_arguments(__doc__, "comma-separated seeds")
+    parser.add_argument("--ways", default=",".join(WAYS), help=f"comma-separated, of {', '.join(WAYS)}")
     args = parser.parse_args()
     import fiberplan as fp
 

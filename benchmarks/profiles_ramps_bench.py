@@ -17,7 +17,6 @@ last ramp included), time::
 
 from __future__ import annotations
 
-import argparse
 import datetime as dt
 import json
 import sys
@@ -28,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import machine_info
-from profiles_pauses_bench import figures, totals
+from profiles_pauses_bench import figures, plan_arguments, totals
 
 
 def with_ramp(name: str, ramp_s: float):
@@ -71,16 +70,9 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--instrument", default="moons")
-    parser.add_argument("-n", type=int, default=61)
-    parser.add_argument("--kind", default="unfold")
-    parser.add_argument("--planner", default="mpc")
-    parser.add_argument("--seeds", required=True, help="0-9 or comma-separated")
+    parser = plan_arguments(__doc__, "0-9 or comma-separated")
     parser.add_argument("--ramps", default="0,0.05,0.1,0.2", help="comma-separated ramp times (s); 0: the preset")
     parser.add_argument("--plan-with-ramps", action="store_true", help="also plan on the instrument with each ramp and discretise that plan")
-    parser.add_argument("--cache", type=Path, help="directory of plans kept as .h5 and reused")
-    parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     import fiberplan as fp
 

@@ -582,7 +582,7 @@ def _pause_times(joints: dict[tuple[int, int], JointProfile], motors: MotorLimit
             top = tops[key[1]]
             segments = list(zip(t_knot[:-1].tolist(), t_knot[1:].tolist(), speeds, strict=True))
             for k in range(1, len(speeds)):
-                caps = _ramp_caps(segments[k - 1::-1], segments[k][0], top, ramp)
+                caps = _ramp_caps((segments[j] for j in range(k - 1, -1, -1)), segments[k][0], top, ramp)  # latest first, lazily
                 v = speeds[k]
                 if v > caps[0] * (1 + 1e-9) + _TOL or -v > caps[1] * (1 + 1e-9) + _TOL:
                     found.append(float(t_knot[k]))
@@ -1276,11 +1276,11 @@ def _sampled_fit(cor: _Corridor) -> tuple[np.ndarray, np.ndarray, int]:
     prev = 0.0
     tol = 1e-9 * cor.top + _TOL
     for k, k_next, v in zip(ks[:-1].tolist(), ks[1:].tolist(), speeds.tolist(), strict=True):
-        caps = None if ramp is None else _ramp_caps(done, float(cor.times[k]), cor.top, ramp)
+        caps = None if ramp is None else _ramp_caps(reversed(done), float(cor.times[k]), cor.top, ramp)
         allowed = _allowed_speeds(prev, cor.top, cor.motors, cor.axis, caps)
         if not any(a - tol <= v <= b + tol for a, b in allowed):
             broken += 1
-        done.insert(0, (float(cor.times[k]), float(cor.times[k_next]), v))
+        done.append((float(cor.times[k]), float(cor.times[k_next]), v))
         prev = v
     runs = 1 + int(np.count_nonzero(np.abs(np.diff(speeds)) > _TOL))
     if cor.motors.max_segments is not None and runs > cor.motors.max_segments:
@@ -1373,9 +1373,9 @@ def _relaxed_fit(cor: _Corridor) -> tuple[np.ndarray, np.ndarray, int]:
     ks, ps = [k], [p]
     relaxed = 0
     ramp = cor.motors.ramp_time_s
-    done: list[tuple[float, float, float]] = []  # the segments so far, latest first (:func:`_ramp_caps`)
+    done: list[tuple[float, float, float]] = []  # the segments so far, in order (:func:`_ramp_caps` reads them latest first)
     while k < cor.k1:
-        caps = None if ramp is None else _ramp_caps(done, float(cor.times[k]), cor.top, ramp)
+        caps = None if ramp is None else _ramp_caps(reversed(done), float(cor.times[k]), cor.top, ramp)
         opts = _options(cor, k, p, prev, caps=caps)
         if opts:
             m, s = opts[0]
@@ -1384,7 +1384,7 @@ def _relaxed_fit(cor: _Corridor) -> tuple[np.ndarray, np.ndarray, int]:
             ends, s_lo, s_hi, aim, _, _ = _cone(cor, k, p)
             m, s = int(ends[0]), float(np.clip(np.clip(aim[0], s_lo[0], s_hi[0]), -cor.top, cor.top))
         p = float(cor.q[cor.k1]) if m == cor.k1 else p + s * float(cor.times[m] - cor.times[k])
-        done.insert(0, (float(cor.times[k]), float(cor.times[m]), s))
+        done.append((float(cor.times[k]), float(cor.times[m]), s))
         k, prev = m, s
         ks.append(k)
         ps.append(p)

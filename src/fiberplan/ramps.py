@@ -39,15 +39,6 @@ _MIN_STEP_S = 1e-6  # executed samples closer than this to the previous one are 
 _CHUNK_SAMPLES = 256  # executed samples computed at once (memory: this x positioners x 2)
 
 
-def ramp_reach_rad(inst: Instrument) -> tuple[float, float]:
-    """``(alpha, beta)``: how far (rad) a joint's executed motion may leave its commands lagged by
-    half the ramp time, without reversals: top speed times ramp time over 8 (0 without a ramp)."""
-    tau = inst.motors.ramp_time_s
-    if tau is None:
-        return 0.0, 0.0
-    return inst.alpha_speed_rad_s * tau / 8.0, inst.beta_speed_rad_s * tau / 8.0
-
-
 def max_acceleration_rad_s2(inst: Instrument) -> tuple[float, float] | None:
     """``(alpha, beta)`` the acceleration the ramps allow: top speed over ramp time (``None``: no ramp)."""
     tau = inst.motors.ramp_time_s
