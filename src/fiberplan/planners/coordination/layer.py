@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextvars
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 from typing import Any
@@ -15,7 +16,7 @@ from fiberplan.metrics import arrival_times, reached_mask
 from fiberplan.outcomes import outcome_labels
 from fiberplan.planners.coordination.fork import CHILD_RUNS, RUN_LOG, both
 from fiberplan.planners.coordination.legs import PlanLeg, _park_candidates, complete_leg, leg_scenario
-from fiberplan.planners.coordination.retime import overlap_legs
+from fiberplan.planners.coordination.retime import overlap_legs, ramp_rests
 from fiberplan.planners.coordination.settings import REVERSE_LEG, UNFOLD_REVERSED_LEG
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult, Trajectory
@@ -35,6 +36,7 @@ class _Options:
     floor_mm: float  # the clearance new pairs of overlapped legs and solo moves keep (the planner's safety margin)
     coarse_steps: int  # stride of the search for the overlap
     dt_s: float  # the planner's control step
+    rest_steps: int = 0  # steps a joint holds still before turning back where runs meet (the instrument's speed ramp; governed planners)
 
     @property
     def solo(self) -> tuple[float, float]:
@@ -54,10 +56,12 @@ class _Piece:
     first_samples: int = 0  # samples before restarts and overlap shortened it (0: not known)
 
 
-def _join(scenario: Scenario, pieces: list[_Piece], dt: float) -> Trajectory:
+def _join(scenario: Scenario, pieces: list[_Piece], dt: float, rest: int = 0) -> Trajectory:
     """One trajectory from pieces that each start where the previous one ended (first piece
-    from the scenario's start)."""
+    from the scenario's start); with ``rest`` steps (speed ramps), everyone holds where a joint
+    would turn back sooner after a fast move (:func:`ramp_rests`: where planner runs meet)."""
     joints = np.concatenate([scenario.start[None], *[p.joints[1:] for p in pieces]])
+    joints, _ = ramp_rests(joints, rest, scenario.instrument.speeds_rad_s * dt)
     return Trajectory(np.arange(len(joints)) * dt, joints)
 
 
@@ -155,8 +159,8 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     unfold = _reversed(second.joints)
     plain = first.first_samples + second.first_samples - 1  # the two legs as first planned, one after the other
     if opts.overlap:
-        joints, shift = overlap_legs(scenario, first.joints, unfold, opts.floor_mm, opts.coarse_steps)
-        if shift:
+        joints, shift = overlap_legs(scenario, first.joints, unfold, opts.floor_mm, opts.coarse_steps, rest=opts.rest_steps)
+        if shift > 0:
             return [_Piece(f"{label}fold to the datum, then unfold from it (planned from the targets), overlapped by {shift} steps",
                            joints, who, first.runs + second.runs, first.wall_s + second.wall_s, overlap_steps=shift,
                            first_samples=plain)]
@@ -211,10 +215,14 @@ def _score(scenario: Scenario, traj: Trajectory) -> tuple[int, float]:
     return short, float(np.nanmax(arrive[reached])) if reached.any() else 0.0
 
 
-def _options(settings: Any) -> _Options:
+def _options(settings: Any, scenario: Scenario) -> _Options:
     step = max(1, round(0.25 / settings.dt_s))  # the overlap is searched in strides of 0.25 s, then refined
+    ramp = scenario.instrument.motors.ramp_time_s
+    # The ramps are kept where runs meet only by a planner that keeps them within its runs (the mpc's motor
+    # governor): the others' plans turn back at every step where they wait, and are left to the discretiser.
+    rest = 0 if ramp is None or not getattr(settings, "motor_limits", False) else math.ceil(ramp / settings.dt_s - 1e-9)
     return _Options(settings.route_attempts, settings.dt_s if settings.route_restarts else None, settings.route_overlap,
-                    float(getattr(settings, "safety_margin_mm", 0.0)), step, settings.dt_s)
+                    float(getattr(settings, "safety_margin_mm", 0.0)), step, settings.dt_s, rest)
 
 
 def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Options,
@@ -314,13 +322,13 @@ def coordinate(
     def consider(name: str, pieces: list[_Piece] | None) -> dict[str, Any]:
         entry: dict[str, Any] = {"strategy": name, "complete": pieces is not None}
         if pieces is not None:
-            short, makespan = scores[name] = _score(scenario, _join(scenario, pieces, dt))
+            short, makespan = scores[name] = _score(scenario, _join(scenario, pieces, dt, opts.rest_steps))
             entry |= {"short": short, "makespan_s": makespan}
             candidates[name] = pieces
         tried.append(entry)
         return entry
 
-    opts = _options(settings)
+    opts = _options(settings, scenario)
     structure = _strategies(scenario, route, recorded, opts, consider)
 
     def short() -> bool:
@@ -340,9 +348,11 @@ def coordinate(
         if scores[chosen] > scores["via_datum"]:
             chosen = "via_datum"
     pieces = candidates[chosen]
-    trajectory = _join(scenario, pieces, dt)
+    trajectory = _join(scenario, pieces, dt, opts.rest_steps)
     stats: dict[str, Any] = {"route": route, "structure": structure, "chosen": chosen, "candidates": tried,
                              "planner_runs": len(runs) + len(CHILD_RUNS)} | _leg_stats(scenario, pieces, dt)
+    if opts.rest_steps:  # the legs' times above are before these holds
+        stats["ramp_rest_s"] = (len(trajectory.joints) - sum(len(p.joints) - 1 for p in pieces) - 1) * dt
     single = [r for r in from_start if np.array_equal(r.trajectory.joints, trajectory.joints)]
     if single:
         # The planner alone, in one run: its own result, with the route named.

@@ -75,7 +75,56 @@ def _new_pairs_clear(scenario: Scenario, j1: np.ndarray, j2: np.ndarray, a: np.n
     return bool(np.all(lower[checked] > 0.0) and np.all(np.minimum(c[:-1], c[1:])[checked] >= floor))
 
 
-def overlap_legs(scenario: Scenario, j1: np.ndarray, j2: np.ndarray, floor: float, coarse: int) -> tuple[np.ndarray, int]:
+def turns_back(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """Which positioners turn a joint back where ``before`` (``(K1 + 1, N, 2)``) ends and
+    ``after`` (``(K2 + 1, N, 2)``) begins: the joint's last move in the first and its first move
+    in the second have opposite directions (holds in between do not count)."""
+
+    def direction(steps: np.ndarray) -> np.ndarray:  # (K, N, 2) -> the sign of the first nonzero step, 0 if none
+        moving = steps != 0.0
+        first = np.argmax(moving, axis=0)
+        return np.where(moving.any(axis=0), np.sign(np.take_along_axis(steps, first[None], axis=0)[0]), 0.0)
+
+    last = direction(np.diff(before, axis=0)[::-1])
+    first = direction(np.diff(after, axis=0))
+    return np.any(last * first < 0.0, axis=1)
+
+
+def ramp_rests(joints: np.ndarray, rest: int, top: np.ndarray) -> tuple[np.ndarray, int]:
+    """``joints`` (``(K + 1, N, 2)`` samples) with everyone holding still, for as few steps as
+    needed, wherever a joint turns back less than ``rest`` steps after moving the other way such
+    that the two speeds add up to more than the top speed (``top``, per joint, rad per step
+    unit: the same units as the steps): the speed ramps' rule (:mod:`fiberplan.ramps`; the
+    ``mpc`` keeps it within a run, :func:`fiberplan.planners.motors.govern` rule 4; its runs are
+    joined here). Holding a sample is safe (each configuration is one already verified), and the
+    motion is otherwise unchanged. Returns ``(joints, steps inserted)``."""
+    if rest <= 0 or len(joints) < 3:
+        return joints, 0
+    inserted = 0
+    start = 1
+    while True:
+        steps = np.diff(joints, axis=0)  # (K, N, 2)
+        first: tuple[int, int] | None = None  # (step, steps since the opposite move) of the earliest clash
+        for d in range(1, rest + 1):
+            if start < d or start >= len(steps):
+                continue
+            now, before = steps[max(start, d):], steps[max(start, d) - d: len(steps) - d]
+            clash = (now * before < 0.0) & (np.abs(now) + np.abs(before) > top * (1 + 1e-9))
+            hit = np.flatnonzero(clash.any(axis=(1, 2)))
+            if len(hit):
+                s = max(start, d) + int(hit[0])
+                if first is None or s < first[0] or (s == first[0] and d < first[1]):
+                    first = (s, d)
+        if first is None:
+            return joints, inserted
+        s, d = first
+        pad = rest + 1 - d
+        joints = np.concatenate([joints[: s + 1], np.repeat(joints[s : s + 1], pad, axis=0), joints[s + 1 :]])
+        inserted += pad
+        start = s + pad
+
+
+def overlap_legs(scenario: Scenario, j1: np.ndarray, j2: np.ndarray, floor: float, coarse: int, rest: int = 0) -> tuple[np.ndarray, int]:
     """The two legs overlapped by the largest shift found safe (see the module docstring).
 
     Args:
@@ -84,6 +133,9 @@ def overlap_legs(scenario: Scenario, j1: np.ndarray, j2: np.ndarray, floor: floa
         floor: smallest clearance a new pair may reach at a sample (mm).
         coarse: shifts are searched downward in strides of this many samples, then refined
             sample by sample above the first one found clear.
+        rest: samples each positioner that turns a joint back at the hold (:func:`turns_back`)
+            stays there at least (speed ramps: an opposite speed a ramp after a stop). Where the
+            legs one after the other leave less, the second starts later (a negative shift).
 
     Returns:
         ``(joints, shift in samples)``; a shift of 0 is the legs one after the other.
@@ -92,7 +144,11 @@ def overlap_legs(scenario: Scenario, j1: np.ndarray, j2: np.ndarray, floor: floa
         raise ValueError("the legs do not meet at one configuration")
     a, b = _phases(j1, j2)
     k1 = len(j1) - 1
-    s_max = max(0, int(np.min(k1 - a + b)))
+    need = rest * turns_back(j1, j2) if rest > 0 else 0
+    s_max = int(np.min(k1 - a + b - need))
+    if s_max <= 0:
+        shift = min(0, s_max)
+        return _combined(j1, j2, b, shift)[0], shift
     coarse = max(1, coarse)
     found = 0
     for s in range(s_max, 0, -coarse):
