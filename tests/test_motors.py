@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 import fiberplan as fp
 from fiberplan.instrument import MotorLimits
-from fiberplan.planners.motors import govern
+from fiberplan.planners.motors import govern, hold_for_ramps
 
 MOONS = MotorLimits(min_speed_rad_s=(0.08, 0.1), max_speed_change=0.4, stop_before_reversing=True)
 TOP = np.array([0.29, 0.39])
@@ -127,6 +127,17 @@ def test_with_a_ramp_a_fast_joint_turns_back_only_after_a_ramp_at_rest():
     assert step(-0.04, forward=0.25, backward=0.0) == pytest.approx(-0.04)  # 0.04 + 0.25 <= 0.29: may turn back slowly
     assert step(-0.2, forward=0.0, backward=0.1) == pytest.approx(-0.2)  # the same way: free
     assert step(-0.2, forward=0.0, backward=0.0) == pytest.approx(-0.2)  # rested a ramp: free
+
+
+def test_the_positioners_exempt_from_the_governor_still_wait_a_ramp_before_turning_back():
+    """Rule 4 alone (the stalled and those on the deadlock ladder): the fast reversal holds, the
+    rest of the step (the other joint, a slow reversal, a rested joint) is kept."""
+    q = np.zeros((3, 2))
+    proposed = np.array([[-0.2, 0.3], [-0.04, 0.0], [-0.2, 0.0]]) * DT
+    forward = np.array([[0.25, 0.0], [0.25, 0.0], [0.0, 0.0]])
+    out = hold_for_ramps(q, proposed, DT, TOP, (forward, np.zeros((3, 2))))
+    np.testing.assert_allclose(out / DT, [[0.0, 0.3], [-0.04, 0.0], [-0.2, 0.0]])
+    assert hold_for_ramps(q, proposed, DT, TOP, None) is proposed  # no ramp stated: unchanged
 
 
 def test_the_mpc_plans_on_a_ramped_instrument_keep_the_ramps():

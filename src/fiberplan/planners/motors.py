@@ -104,6 +104,18 @@ def govern(
     return np.clip(governed, limits[:, 0], limits[:, 1])
 
 
+def hold_for_ramps(q: np.ndarray, q_next: np.ndarray, dt: float, top: np.ndarray, recent: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """Rule 4 alone (the positioners exempt from the others, ``(M, 2)`` arrays): a joint whose
+    step ``q -> q_next`` turns back with an opposite speed of the last ramp (``recent``, as in
+    :func:`govern`) such that the two add up to more than the top speed holds."""
+    if recent is None:
+        return q_next
+    step = q_next - q
+    speed = np.abs(step) / dt
+    opposite = np.where(step > 0, recent[1], recent[0])
+    return np.where((speed > _TOL) & (speed + opposite > top * (1 + 1e-9)), q, q_next)
+
+
 _CANDIDATES = 17
 """Speeds tried across the allowed band when a step must leave a reachable remainder."""
 

@@ -54,7 +54,7 @@ from fiberplan.kinematics import fiber_positions, straight_path
 from fiberplan.outcomes import outcome_labels
 from fiberplan.planners import ProgressCallback
 from fiberplan.planners.coordination.settings import REVERSED_LEGS
-from fiberplan.planners.motors import govern, governs
+from fiberplan.planners.motors import govern, governs, hold_for_ramps
 from fiberplan.planners.mpc.conflicts import build_qp_batch, select_conflicts
 from fiberplan.planners.mpc.deadlock import Deadlocks, Level
 from fiberplan.planners.mpc.executors import make_executor
@@ -178,10 +178,13 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             # will actually be executed.
             if govern_motors:
                 proposed = q_next
+                recent = _recent_speeds(history, h, inst.motors.ramp_time_s)
                 q_next = govern(q, q_next, v_prev * inst.speeds_rad_s, goal, h, inst.motors, inst.speeds_rad_s, inst.limits_rad,
-                                reverse=reversed_leg, recent=_recent_speeds(history, h, inst.motors.ramp_time_s))
+                                reverse=reversed_leg, recent=recent)
                 free = stalled | (deadlocks.level != Level.NORMAL)
-                q_next[free] = proposed[free]
+                # The exempt keep the ramps (rule 4) alone: a reversal of a fast joint waits a ramp at rest.
+                q_next[free] = hold_for_ramps(q[free], proposed[free], h, inst.speeds_rad_s,
+                                              None if recent is None else (recent[0][free], recent[1][free]))
                 governed = np.any(q_next != proposed, axis=1)
             q_next, held, iters = safety.apply(q, q_next, c_now, partial(outranks, rank=rank, defer_to=deadlocks.wait_first))
             stats.safety_holds += int(held.sum())
