@@ -79,6 +79,56 @@ def test_overlap_keeps_new_pairs_apart_or_is_refused():
     a, b = _phases(j1, j2)
     assert _new_pairs_clear(sc, j1, j2, a, b, shift_far, floor=np.inf)  # true only where there is no new pair
     assert not _new_pairs_clear(sc, j1, j2, a, b, shift, floor=np.inf)
+    # With speed ramps, a positioner that turns back at the datum stays there ``rest`` samples at least.
+    from fiberplan.planners.coordination.retime import turns_back
+
+    back = turns_back(j1, j2)
+    assert back.any()
+    for rest in (4, 3 * k):
+        rested, shift_rest = overlap_legs(sc, j1, j2, floor=0.0, coarse=5, rest=rest)
+        assert shift_rest <= shift and len(rested) == len(j1) + len(j2) - 1 - shift_rest
+        at_hold = np.all(rested == j1[-1][None], axis=2)  # (T, N)
+        assert at_hold[:, back].sum(axis=0).min() >= rest + 1  # rest steps between arrival and departure
+    assert shift_rest < 0  # rests longer than the legs' holds: the second leg starts later
+
+
+def test_where_runs_meet_a_fast_reversal_waits_a_ramp_at_rest():
+    """``ramp_rests``: everyone holds (as few samples as needed) where a joint turns back within
+    ``rest`` samples at speeds adding up to more than the top; slow or rested reversals are left."""
+    from fiberplan.planners.coordination.retime import ramp_rests
+
+    top = np.array([0.1, 0.1])
+    alpha = np.cumsum([0.0, 0.1, 0.1, -0.1, -0.1])  # full speed out and straight back
+    joints = np.zeros((5, 2, 2))
+    joints[:, 0, 0] = alpha
+    joints[:, 1, 1] = np.linspace(0.0, 0.2, 5)  # another positioner, moving steadily
+    rested, inserted = ramp_rests(joints, 3, top)
+    assert inserted == 3
+    np.testing.assert_array_equal(rested[:3], joints[:3])
+    np.testing.assert_array_equal(rested[3:6], np.repeat(joints[2:3], 3, axis=0))  # everyone holds
+    np.testing.assert_array_equal(rested[6:], joints[3:])
+    assert ramp_rests(rested, 3, top)[1] == 0  # once rested, nothing more
+    slow = joints.copy()
+    slow[:, 0, 0] = np.cumsum([0.0, 0.05, 0.05, -0.05, -0.05])  # 0.05 + 0.05 <= the top: may turn at once
+    assert ramp_rests(slow, 3, top)[1] == 0
+    assert ramp_rests(joints, 0, top) == (joints, 0)  # no ramp: unchanged
+
+
+def test_two_legs_on_a_ramped_instrument_keep_the_ramps_where_they_meet():
+    """The legs, overlapped, with the mpc's governor keeping the ramps within each: executed as
+    commands with 0.2 s ramps, no speed changes faster than they allow (3 such changes where the
+    legs met before the rests)."""
+    from fiberplan.instrument_io import load_instrument
+    from fiberplan.ramps import verify_commands
+
+    spec = load_instrument("moons-capsules").to_dict()
+    spec["motors"]["ramp_time_s"] = 0.2
+    scenario = scenario_from_dict(fp.make_scenario("moons-capsules", 19, "random", 2).to_dict() | {"instrument": spec}, origin="test")
+    result = fp.plan(scenario, "mpc", {"route": "via_datum"})
+    assert fp.summarize(result)["reached"] == 19 and result.stats["overlap_s"] > 0
+    assert result.stats["ramp_rest_s"] > 0
+    report = verify_commands(scenario, result.trajectory)
+    assert report.ok and not [v for v in report.motor_violations if v.kind == "acceleration"]
 
 
 def test_restarts_shorten_a_leg_with_stragglers_and_never_lengthen_one():
