@@ -2,7 +2,8 @@
 (``split``, as before session 21), running through the pauses inside its segments where the
 motors allow (``run_through``: :data:`fiberplan.profiles.STRETCH_PAUSES`), and that with a fit
 from the smoothed samples tried where the pauses leave violations or cost makespan
-(``dechatter``: :data:`fiberplan.profiles.DECHATTER`, the default).
+(``dechatter``: :data:`fiberplan.profiles.DECHATTER`), and that with the violating positioners'
+back-and-forth cut short (``shortcut``: :data:`fiberplan.profiles.SHORTCUT`, the default).
 
 Each seed is planned once (the planner's instrument defaults; ``--cache DIR`` keeps the plans as
 ``.h5`` files and reuses them) and discretised each way. Rows: motor-limit violations left and
@@ -28,7 +29,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import machine_info
 
-WAYS = {"split": (False, False), "run_through": (True, False), "dechatter": (True, True)}  # (STRETCH_PAUSES, DECHATTER)
+WAYS = {"split": (False, False, False), "run_through": (True, False, False), "dechatter": (True, True, False),
+        "shortcut": (True, True, True)}  # (STRETCH_PAUSES, DECHATTER, SHORTCUT)
 
 
 def discretised(result, way: str) -> dict:
@@ -36,14 +38,14 @@ def discretised(result, way: str) -> dict:
     import fiberplan as fp
     import fiberplan.profiles as profiles
 
-    saved = profiles.STRETCH_PAUSES, profiles.DECHATTER
-    profiles.STRETCH_PAUSES, profiles.DECHATTER = WAYS[way]
+    saved = profiles.STRETCH_PAUSES, profiles.DECHATTER, profiles.SHORTCUT
+    profiles.STRETCH_PAUSES, profiles.DECHATTER, profiles.SHORTCUT = WAYS[way]
     try:
         started = time.perf_counter()
         made = fp.discretise(result)
         took = time.perf_counter() - started
     finally:
-        profiles.STRETCH_PAUSES, profiles.DECHATTER = saved
+        profiles.STRETCH_PAUSES, profiles.DECHATTER, profiles.SHORTCUT = saved
     moving = np.array([int(np.count_nonzero(p.speeds_rad_s)) for p in made.joints.values()])
     return figures(made, took) | {
         "fraction": made.stats["fraction"],
@@ -51,6 +53,7 @@ def discretised(result, way: str) -> dict:
         "source": made.stats["source"],
         "sources_tried": made.stats["sources_tried"],
         "dechattered_samples": made.stats["dechattered_samples"],
+        "shortcut_samples": made.stats["shortcut_samples"],
         "pauses_run_through": made.stats["pauses_run_through"],
         "segments_max": int(made.segment_counts().max()),
         "moving_segments_max": int(moving.max()) if len(moving) else 0,

@@ -560,3 +560,34 @@ def test_the_search_split_with_a_forked_process_gives_the_same_profiles(desi_ran
         np.testing.assert_array_equal(forked.joints[key].speeds_rad_s, prof.speeds_rad_s)
         assert (forked.joints[key].start_s, forked.joints[key].start_rad) == (prof.start_s, prof.start_rad)
     assert forked.stats["relaxed_segments"] == alone.stats["relaxed_segments"]
+
+
+def _shuffling_run() -> tuple[fp.Scenario, Trajectory]:
+    """MOONS (capsules) 7 from the datum: positioner 0 turns alpha about 0.4 rad in 240 s,
+    shuffling back and forth on the way (20 steps of +0.01 rad, then 19 of about -0.0104, every
+    0.05 s: about 250 moving runs, within the top speed and above the minimum), the others
+    still. Folded, it stays in its own patrol disc: collision-free."""
+    scenario = fp.make_scenario("moons-capsules", 7, "unfold", 0)
+    k = 4800
+    steps = np.resize(np.concatenate([np.full(20, 0.01), np.full(19, -0.01 * 19.7 / 19)]), k)
+    joints = np.repeat(scenario.start[None], k + 1, axis=0)
+    joints[1:, 0, 0] += np.cumsum(steps)
+    return scenario, Trajectory(np.arange(k + 1) * 0.05, joints)
+
+
+def test_back_and_forth_beyond_the_segment_limit_is_cut_short(monkeypatch):
+    """A joint that shuffles more often than the motors' 128 segments allow: the shortcut (a
+    straight move where every pair stays clear) leaves none of the motor limits broken, and the
+    export is verified; without it the segment limit is broken."""
+    from fiberplan import profiles
+
+    scenario, traj = _shuffling_run()
+    assert fp.verify(scenario, traj).ok
+    monkeypatch.setattr(profiles, "SHORTCUT", False)
+    plain = discretise_trajectory(scenario, traj)
+    assert plain.report.ok and any(v.kind == "segments" and v.positioner_id == int(scenario.ids[0]) for v in plain.report.motor_violations)
+    monkeypatch.setattr(profiles, "SHORTCUT", True)
+    cut = discretise_trajectory(scenario, traj)
+    assert cut.report.ok and cut.report.motor_violations == [] and cut.stats["source"] == "shortcut" and cut.stats["shortcut_samples"] > 0
+    np.testing.assert_allclose(cut.trajectory().joints[-1], traj.joints[-1], atol=1e-9)
+    assert len(cut.joints[(int(scenario.ids[0]), 0)].durations_s) <= 128

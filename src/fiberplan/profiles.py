@@ -31,6 +31,9 @@ algorithm and its guarantee are in ``formulations/profiles.md``; in short:
 5. **Smoothed samples.** Where a plan chatters (a joint turning back at every sample where it
    waits at a neighbour, as the dnf's plans do), the fit is made from its samples with each
    zigzag replaced by its midline (:func:`_dechattered`), verified first; the better fit is kept.
+6. **Shortcuts.** Where limits are still broken, the joints of the positioners breaking them are
+   cut short: straight moves between samples wherever every pair of theirs stays clear
+   (:func:`_shortcut_joint`), verified whole, fitted again; the better fit is kept.
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from fiberplan import _fork
+from fiberplan import _fork, geometry
 from fiberplan.errors import ProfileError
 from fiberplan.geometry import point_extents
 from fiberplan.instrument import Instrument, MotorLimits
@@ -305,12 +308,22 @@ def discretise_trajectory(
             smoothed = smoothed_attempt()
     if best is None:
         raise failed[-1]
+    cut = 0
+    if smoothing and SHORTCUT and best[1].motors_checked and best[1].motor_violations:
+        # the violating positioners' back-and-forth cut short where every pair stays clear
+        samples, pairs_of, near_of = sources[best[2]["source"]]
+        targets = {scenario.index_of(v.positioner_id) for v in best[1].motor_violations}
+        shortened, cut, checked_s = _shortcut(scenario, inst, samples, pairs_of, near_of, targets)
+        verify_s += checked_s
+        if shortened is not None:
+            sources["shortcut"] = shortened
+            attempt("shortcut", fraction)
     for f in (w for w in WIDER_FRACTIONS if w > fraction):
         if not (pauses and best[1].motors_checked and best[1].motor_violations):
             break  # wider corridors are tried only where the pauses leave motor-limit violations
         attempt(best[2]["source"], f)
     joints, report, stats = best
-    stats |= {"fractions_tried": [f for _, f in tried], "sources_tried": [name for name, _ in tried], "dechattered_samples": smoothed,
+    stats |= {"fractions_tried": [f for _, f in tried], "sources_tried": [name for name, _ in tried], "dechattered_samples": smoothed, "shortcut_samples": cut,
               "makespan_before_s": planned_makespan,
               "discretise_s": time.perf_counter() - started, "of_which_verify_s": verify_s}
     return Profiles(scenario, joints, report, stats)
@@ -380,6 +393,114 @@ def _dechatter(
             return None, 0, verify_s
         keep |= {scenario.index_of(ident) for ident in named}
     return None, 0, verify_s
+
+
+SHORTCUT = True  # where violations are left, the violating positioners' back-and-forth motion is cut short (:func:`_shortcut`)
+SHORTCUT_CLEARANCE_MM = 0.5  # a shortcut keeps each pair this clear, or as clear as planned where it was closer
+SHORTCUT_ROUNDS = 3  # verifications of the shortcut samples, each keeping as they were the positioners found in a collision
+
+
+def _shortcut(
+    scenario: Scenario, inst: Instrument, trajectory: Trajectory, pairs: np.ndarray, near: np.ndarray, targets: set[int],
+) -> tuple[tuple[Trajectory, np.ndarray, np.ndarray] | None, int, float]:
+    """The samples ``trajectory`` with the joints of the positioners ``targets`` (indices) cut
+    short (:func:`_shortcut_joint`: back-and-forth motion replaced by straight moves between
+    samples where every pair stays clear), verified with their clearances; positioners found in
+    a collision keep their samples and the rest is verified again, up to :data:`SHORTCUT_ROUNDS`
+    times. ``near`` holds the clearances of ``trajectory`` at ``pairs`` as :func:`_near` leaves
+    them. Returns ``((trajectory, pairs, clearances as :func:`_near` leaves them) or None,
+    samples changed, time spent verifying)``."""
+    keep: set[int] = set()
+    verify_s = 0.0
+    rho = point_extents(inst)
+    for _ in range(SHORTCUT_ROUNDS):
+        joints = trajectory.joints.copy()
+        for i in sorted(targets - keep):
+            for axis in (0, 1):
+                joints[:, i, axis] = _shortcut_joint(scenario, inst, trajectory, joints, pairs, near, i, axis, rho)
+        changed = int(np.count_nonzero(joints != trajectory.joints))
+        if not changed:
+            return None, 0, verify_s
+        candidate = Trajectory(trajectory.times, joints)
+        checked = time.perf_counter()
+        report, cand_pairs, clear = verify_with_clearances(scenario, candidate, instrument=inst)
+        verify_s += time.perf_counter() - checked
+        if report.ok:
+            return (candidate, cand_pairs, _near(clear)), changed, verify_s
+        named = {scenario.index_of(ident) for ident in _named(report)}
+        if not named & (targets - keep):
+            return None, 0, verify_s
+        keep |= named
+    return None, 0, verify_s
+
+
+def _shortcut_joint(
+    scenario: Scenario, inst: Instrument, planned: Trajectory, joints: np.ndarray, pairs: np.ndarray, near: np.ndarray, i: int, axis: int,
+    rho: np.ndarray,
+) -> np.ndarray:
+    """Joint ``axis`` of positioner ``i`` in ``joints`` (``(T, N, 2)``, the others as they now
+    are), cut short: from each kept sample ``a``, the farthest sample ``b`` found (by doubling,
+    then bisection) such that the straight move from ``q[a]`` to ``q[b]`` keeps every pair of
+    ``i`` at least ``min(planned clearance, SHORTCUT_CLEARANCE_MM)`` clear at every sample in
+    between. The planned clearances ``near`` less the motion bound of both positioners' departure
+    from ``planned`` decide where that holds; the clearance is computed exactly only where they
+    do not. A straight move between two samples stays within the hard stops and, the joint having
+    covered at least that angle in that time, within the top speed."""
+    times = planned.times
+    q = joints[:, i, axis]
+    rows = np.flatnonzero((pairs == i).any(axis=1))
+    if len(rows) == 0 or len(q) < 3:
+        return q
+    other = pairs[rows].sum(axis=1) - i
+    need = np.minimum(near[:, rows], SHORTCUT_CLEARANCE_MM)
+    off_other = np.abs(joints[:, other] - planned.joints[:, other]) @ rho  # (T, R): the neighbours' departure from the planned path
+    fixed = np.abs(joints[:, i, 1 - axis] - planned.joints[:, i, 1 - axis]) * rho[1 - axis]  # (T,): the other joint's
+    base_i, orient_i = scenario.base_xy[i], scenario.orient[i]
+
+    def clear(a: int, b: int) -> tuple[bool, np.ndarray]:
+        line = q[a] + (q[b] - q[a]) * (times[a:b + 1] - times[a]) / (times[b] - times[a])
+        off = np.abs(line - planned.joints[a:b + 1, i, axis]) * rho[axis] + fixed[a:b + 1]
+        slack = near[a:b + 1, rows] - off[:, None] - off_other[a:b + 1] - need[a:b + 1]
+        kk, rr = np.nonzero(slack < 0.0)
+        if len(kk) == 0:
+            return True, line
+        mine = joints[a + kk, i].copy()
+        mine[:, axis] = line[kk]
+        n = other[rr]
+        exact = geometry.clearance_between(
+            inst, np.broadcast_to(base_i, (len(kk), 2)), np.broadcast_to(orient_i, len(kk)), mine,
+            scenario.base_xy[n], scenario.orient[n], joints[a + kk, n],
+        ).min(axis=1)
+        return bool(np.all(exact >= need[a + kk, rr])), line
+
+    out = q.copy()
+    last = len(q) - 1
+    a = 0
+    while a < last:
+        good, bad = a + 1, None
+        probe = a + 2
+        while probe <= last:
+            if not clear(a, probe)[0]:
+                bad = probe
+                break
+            good = probe
+            probe = a + 2 * (probe - a)
+        if bad is None and good < last:
+            if clear(a, last)[0]:
+                good = last
+            else:
+                bad = last
+        if bad is not None:
+            while bad - good > 1:
+                mid = (good + bad) // 2
+                if clear(a, mid)[0]:
+                    good = mid
+                else:
+                    bad = mid
+        if good > a + 1:
+            out[a:good + 1] = clear(a, good)[1]
+        a = good
+    return out
 
 
 def _attempt(
