@@ -42,7 +42,7 @@ import functools
 import itertools
 import math
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -323,7 +323,8 @@ def discretise_trajectory(
             break  # wider corridors are tried only where the pauses leave motor-limit violations
         attempt(best[2]["source"], f)
     joints, report, stats = best
-    stats |= {"fractions_tried": [f for _, f in tried], "sources_tried": [name for name, _ in tried], "dechattered_samples": smoothed, "shortcut_samples": cut,
+    stats |= {"fractions_tried": [f for _, f in tried], "sources_tried": [name for name, _ in tried], "dechattered_samples": smoothed,
+              "shortcut_samples": cut,
               "makespan_before_s": planned_makespan,
               "discretise_s": time.perf_counter() - started, "of_which_verify_s": verify_s}
     return Profiles(scenario, joints, report, stats)
@@ -373,12 +374,21 @@ def _dechatter(
 ) -> tuple[tuple[Trajectory, np.ndarray, np.ndarray] | None, int, float]:
     """The planned trajectory with its zigzags smoothed (:func:`_dechattered`), verified with its
     clearances; positioners found in a collision keep their planned samples and the rest is
-    verified again, up to :data:`DECHATTER_ROUNDS` times. Returns ``((trajectory, pairs,
+    verified again, up to :data:`DECHATTER_ROUNDS` times (:func:`_verified_rounds`)."""
+    return _verified_rounds(scenario, trajectory, inst, DECHATTER_ROUNDS, lambda keep: _dechattered(trajectory.joints, keep))
+
+
+def _verified_rounds(
+    scenario: Scenario, trajectory: Trajectory, inst: Instrument, rounds: int, changed_joints: Callable[[set[int]], np.ndarray],
+) -> tuple[tuple[Trajectory, np.ndarray, np.ndarray] | None, int, float]:
+    """New samples for ``trajectory`` (``changed_joints(keep)``: the positioners ``keep``, indices,
+    as planned), verified with their clearances; positioners found in a collision are kept as
+    planned and the rest is verified again, up to ``rounds`` times. Returns ``((trajectory, pairs,
     clearances as :func:`_near` leaves them) or None, samples changed, time spent verifying)``."""
     keep: set[int] = set()
     verify_s = 0.0
-    for _ in range(DECHATTER_ROUNDS):
-        joints = _dechattered(trajectory.joints, keep)
+    for _ in range(rounds):
+        joints = changed_joints(keep)
         changed = int(np.count_nonzero(joints != trajectory.joints))
         if not changed:
             return None, 0, verify_s
@@ -388,10 +398,10 @@ def _dechatter(
         verify_s += time.perf_counter() - checked
         if report.ok:
             return (candidate, pairs, _near(clear)), changed, verify_s
-        named = _named(report)
-        if not named:
+        named = {scenario.index_of(ident) for ident in _named(report)}
+        if named <= keep:
             return None, 0, verify_s
-        keep |= {scenario.index_of(ident) for ident in named}
+        keep |= named
     return None, 0, verify_s
 
 
@@ -407,31 +417,18 @@ def _shortcut(
     short (:func:`_shortcut_joint`: back-and-forth motion replaced by straight moves between
     samples where every pair stays clear), verified with their clearances; positioners found in
     a collision keep their samples and the rest is verified again, up to :data:`SHORTCUT_ROUNDS`
-    times. ``near`` holds the clearances of ``trajectory`` at ``pairs`` as :func:`_near` leaves
-    them. Returns ``((trajectory, pairs, clearances as :func:`_near` leaves them) or None,
-    samples changed, time spent verifying)``."""
-    keep: set[int] = set()
-    verify_s = 0.0
+    times (:func:`_verified_rounds`). ``near`` holds the clearances of ``trajectory`` at
+    ``pairs`` as :func:`_near` leaves them."""
     rho = point_extents(inst)
-    for _ in range(SHORTCUT_ROUNDS):
+
+    def cut(keep: set[int]) -> np.ndarray:
         joints = trajectory.joints.copy()
         for i in sorted(targets - keep):
             for axis in (0, 1):
                 joints[:, i, axis] = _shortcut_joint(scenario, inst, trajectory, joints, pairs, near, i, axis, rho)
-        changed = int(np.count_nonzero(joints != trajectory.joints))
-        if not changed:
-            return None, 0, verify_s
-        candidate = Trajectory(trajectory.times, joints)
-        checked = time.perf_counter()
-        report, cand_pairs, clear = verify_with_clearances(scenario, candidate, instrument=inst)
-        verify_s += time.perf_counter() - checked
-        if report.ok:
-            return (candidate, cand_pairs, _near(clear)), changed, verify_s
-        named = {scenario.index_of(ident) for ident in _named(report)}
-        if not named & (targets - keep):
-            return None, 0, verify_s
-        keep |= named
-    return None, 0, verify_s
+        return joints
+
+    return _verified_rounds(scenario, trajectory, inst, SHORTCUT_ROUNDS, cut)
 
 
 def _shortcut_joint(
