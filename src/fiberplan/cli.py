@@ -525,6 +525,9 @@ def profiles(run_file: Path, out: Path, form: str | None, fraction: float, pause
                    + (f"; {settled} stop(s) of a ramp where a ramp cut a corner" if settled else ""))
     if summary["source"] == "dechattered":
         click.echo(f"  fitted from the planned samples with their zigzags smoothed ({summary['dechattered_samples']} samples, verified)")
+    if summary["source"] == "shortcut":
+        click.echo(f"  back-and-forth of the positioners breaking a motor limit cut short where every pair stays clear "
+                   f"({summary['shortcut_samples']} samples, verified)")
     if summary["followed_samples"]:
         click.echo(f"  positioners following their planned samples (narrower fits failed the verifier): {summary['followed_samples']}")
     if summary["motor_violations"]:

@@ -230,10 +230,12 @@ def discretise_trajectory(
             violations or adds more than :data:`DECHATTER_GROWTH` of makespan, or where the plan
             chatters (:data:`CHATTER_SHARE`, then first), the fit is made from the planned
             samples with their zigzags smoothed and verified (:func:`_dechatter`,
-            ``stats["source"]``). Where violations are still left, the fit is made again in
-            wider shares of the planned clearances (:data:`WIDER_FRACTIONS`: fewer breakpoints
-            to mend). The verified profiles with the fewest violations, then the shortest
-            makespan, then the fewest segments are kept (``stats["fraction"]``,
+            ``stats["source"]``). Where violations are still left, the violating positioners'
+            back-and-forth is cut short where every pair stays clear and fitted again
+            (:data:`SHORTCUT`, :func:`_shortcut`), then the fit is made again in wider shares
+            of the planned clearances (:data:`WIDER_FRACTIONS`: fewer breakpoints to mend).
+            The verified profiles with the fewest violations, then the shortest makespan, then
+            the fewest segments are kept (``stats["fraction"]``,
             ``stats["fractions_tried"]``, ``stats["sources_tried"]``). Where the instrument
             states a ramp time, every check is also of the motion the motors execute
             (:func:`fiberplan.ramps.verify_commands`), the fit keeps the acceleration, and
