@@ -112,6 +112,7 @@ def test_where_runs_meet_a_fast_reversal_waits_a_ramp_at_rest():
     slow[:, 0, 0] = np.cumsum([0.0, 0.05, 0.05, -0.05, -0.05])  # 0.05 + 0.05 <= the top: may turn at once
     assert ramp_rests(slow, 3, top)[1] == 0
     assert ramp_rests(joints, 0, top) == (joints, 0)  # no ramp: unchanged
+    assert ramp_rests(joints, 3, top, where=np.array([True, True, False, True]))[1] == 0  # a step not counted (chattering samples)
 
 
 def test_two_legs_on_a_ramped_instrument_keep_the_ramps_where_they_meet():

@@ -300,7 +300,7 @@ def discretise_trajectory(
 
     smoothed = 0
     smoothing = pauses and DECHATTER and inst.motors.stated
-    if smoothing and _turn_share(trajectory.joints) >= CHATTER_SHARE:  # a chattering plan: the smoothed samples first,
+    if smoothing and chatters(trajectory.joints):  # a chattering plan: the smoothed samples first,
         smoothed = smoothed_attempt()
         if best is None or best[1].motor_violations:  # and as planned only where they leave violations
             attempt("planned", fraction)
@@ -348,6 +348,13 @@ def _turn_share(joints: np.ndarray) -> float:
     """The share of the moving joint steps ``(T, N, 2)`` after which the joint turns back."""
     step = np.diff(joints, axis=0)
     return float(np.count_nonzero(step[1:] * step[:-1] < 0.0)) / max(int(np.count_nonzero(step)), 1)
+
+
+def chatters(joints: np.ndarray) -> bool:
+    """Whether planned samples ``(T, N, 2)`` chatter: their joints turn back after at least
+    :data:`CHATTER_SHARE` of their moving steps (a planner waiting at a neighbour by bouncing
+    off it, as the dnf's plans do). Such samples are fitted from their smoothed midline first."""
+    return _turn_share(joints) >= CHATTER_SHARE
 
 
 def _dechattered(joints: np.ndarray, keep: set[int]) -> np.ndarray:

@@ -18,6 +18,7 @@ from fiberplan.planners.coordination.fork import CHILD_RUNS, RUN_LOG, both
 from fiberplan.planners.coordination.legs import PlanLeg, _park_candidates, complete_leg, leg_scenario
 from fiberplan.planners.coordination.retime import overlap_legs, ramp_rests
 from fiberplan.planners.coordination.settings import REVERSE_LEG, UNFOLD_REVERSED_LEG
+from fiberplan.profiles import chatters
 from fiberplan.scenario import Scenario
 from fiberplan.trajectory import PlanResult, Trajectory
 
@@ -59,9 +60,12 @@ class _Piece:
 def _join(scenario: Scenario, pieces: list[_Piece], dt: float, rest: int = 0) -> Trajectory:
     """One trajectory from pieces that each start where the previous one ended (first piece
     from the scenario's start); with ``rest`` steps (speed ramps), everyone holds where a joint
-    would turn back sooner after a fast move (:func:`ramp_rests`: where planner runs meet)."""
+    would turn back sooner after a fast move (:func:`ramp_rests`: where planner runs meet), except
+    within pieces that chatter (a fallback dnf's: the discretiser smooths those first)."""
     joints = np.concatenate([scenario.start[None], *[p.joints[1:] for p in pieces]])
-    joints, _ = ramp_rests(joints, rest, scenario.instrument.speeds_rad_s * dt)
+    if rest:
+        where = np.concatenate([np.full(len(p.joints) - 1, not chatters(p.joints)) for p in pieces])
+        joints, _ = ramp_rests(joints, rest, scenario.instrument.speeds_rad_s * dt, where)
     return Trajectory(np.arange(len(joints)) * dt, joints)
 
 

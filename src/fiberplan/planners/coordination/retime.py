@@ -90,16 +90,19 @@ def turns_back(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     return np.any(last * first < 0.0, axis=1)
 
 
-def ramp_rests(joints: np.ndarray, rest: int, top: np.ndarray) -> tuple[np.ndarray, int]:
+def ramp_rests(joints: np.ndarray, rest: int, top: np.ndarray, where: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """``joints`` (``(K + 1, N, 2)`` samples) with everyone holding still, for as few steps as
     needed, wherever a joint turns back less than ``rest`` steps after moving the other way such
     that the two speeds add up to more than the top speed (``top``, per joint, rad per step
     unit: the same units as the steps): the speed ramps' rule (:mod:`fiberplan.ramps`; the
     ``mpc`` keeps it within a run, :func:`fiberplan.planners.motors.govern` rule 4; its runs are
-    joined here). Holding a sample is safe (each configuration is one already verified), and the
-    motion is otherwise unchanged. Returns ``(joints, steps inserted)``."""
+    joined here). Only steps marked in ``where`` (``(K,)``, default all) count: samples that
+    chatter are left to the discretiser, which smooths them first. Holding a sample is safe (each
+    configuration is one already verified), and the motion is otherwise unchanged. Returns
+    ``(joints, steps inserted)``."""
     if rest <= 0 or len(joints) < 3:
         return joints, 0
+    where = np.ones(len(joints) - 1, dtype=bool) if where is None else np.asarray(where, dtype=bool)
     inserted = 0
     start = 1
     while True:
@@ -109,8 +112,9 @@ def ramp_rests(joints: np.ndarray, rest: int, top: np.ndarray) -> tuple[np.ndarr
             if start < d or start >= len(steps):
                 continue
             now, before = steps[max(start, d):], steps[max(start, d) - d: len(steps) - d]
+            counted = where[max(start, d):] & where[max(start, d) - d: len(steps) - d]
             clash = (now * before < 0.0) & (np.abs(now) + np.abs(before) > top * (1 + 1e-9))
-            hit = np.flatnonzero(clash.any(axis=(1, 2)))
+            hit = np.flatnonzero(clash.any(axis=(1, 2)) & counted)
             if len(hit):
                 s = max(start, d) + int(hit[0])
                 if first is None or s < first[0] or (s == first[0] and d < first[1]):
@@ -120,6 +124,7 @@ def ramp_rests(joints: np.ndarray, rest: int, top: np.ndarray) -> tuple[np.ndarr
         s, d = first
         pad = rest + 1 - d
         joints = np.concatenate([joints[: s + 1], np.repeat(joints[s : s + 1], pad, axis=0), joints[s + 1 :]])
+        where = np.concatenate([where[:s], np.ones(pad, dtype=bool), where[s:]])
         inserted += pad
         start = s + pad
 
