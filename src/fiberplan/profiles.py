@@ -230,10 +230,10 @@ def discretise_trajectory(
             violations or adds more than :data:`DECHATTER_GROWTH` of makespan, or where the plan
             chatters (:data:`CHATTER_SHARE`, then first), the fit is made from the planned
             samples with their zigzags smoothed and verified (:func:`_dechatter`,
-            ``stats["source"]``). Where violations are still left, the violating positioners'
-            back-and-forth is cut short where every pair stays clear and fitted again
-            (:data:`SHORTCUT`, :func:`_shortcut`), then the fit is made again in wider shares
-            of the planned clearances (:data:`WIDER_FRACTIONS`: fewer breakpoints to mend).
+            ``stats["source"]``). Where violations are still left, the fit is made again in
+            wider shares of the planned clearances (:data:`WIDER_FRACTIONS`: fewer breakpoints
+            to mend); still left, the violating positioners' back-and-forth is cut short where
+            every pair stays clear and fitted again (:data:`SHORTCUT`, :func:`_shortcut`).
             The verified profiles with the fewest violations, then the shortest makespan, then
             the fewest segments are kept (``stats["fraction"]``,
             ``stats["fractions_tried"]``, ``stats["sources_tried"]``). Where the instrument
@@ -310,9 +310,13 @@ def discretise_trajectory(
             smoothed = smoothed_attempt()
     if best is None:
         raise failed[-1]
+    for f in (w for w in WIDER_FRACTIONS if w > fraction):
+        if not (pauses and best[1].motors_checked and best[1].motor_violations):
+            break  # wider corridors are tried only where the pauses leave motor-limit violations
+        attempt(best[2]["source"], f)
     cut = 0
     if smoothing and SHORTCUT and best[1].motors_checked and best[1].motor_violations:
-        # the violating positioners' back-and-forth cut short where every pair stays clear
+        # the last resort: the violating positioners' back-and-forth cut short where every pair stays clear
         samples, pairs_of, near_of = sources[best[2]["source"]]
         targets = {scenario.index_of(v.positioner_id) for v in best[1].motor_violations}
         shortened, cut, checked_s = _shortcut(scenario, inst, samples, pairs_of, near_of, targets)
@@ -320,10 +324,6 @@ def discretise_trajectory(
         if shortened is not None:
             sources["shortcut"] = shortened
             attempt("shortcut", fraction)
-    for f in (w for w in WIDER_FRACTIONS if w > fraction):
-        if not (pauses and best[1].motors_checked and best[1].motor_violations):
-            break  # wider corridors are tried only where the pauses leave motor-limit violations
-        attempt(best[2]["source"], f)
     joints, report, stats = best
     stats |= {"fractions_tried": [f for _, f in tried], "sources_tried": [name for name, _ in tried], "dechattered_samples": smoothed,
               "shortcut_samples": cut,
