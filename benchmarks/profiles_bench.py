@@ -8,6 +8,7 @@ time. Writes one JSON file (rows and aggregates, with the machine)::
 
     python benchmarks/profiles_bench.py --out benchmarks/results/profiles.json            # the quick sets
     python benchmarks/profiles_bench.py --full --out benchmarks/results/profiles_full.json  # the sets
+    python benchmarks/profiles_bench.py --dnf --out benchmarks/results/profiles_dnf.json    # the dnf on its SDSS, MOONS sets
     python benchmarks/profiles_bench.py --governor --out benchmarks/results/motor_governor.json  # the mpc with and without
                                                                                                # its motor governor
 
@@ -48,6 +49,11 @@ FULL = (  # the quick sets first: a run stopped for time keeps them
     ("mpc", "sdss", 547, "random", range(20)),
     ("dnf", "desi", 500, "random", range(100)),
     ("mpc", "moons", 61, "unfold", range(50)),
+)
+
+DNF = (  # the dnf on the sets that FULL plans with the mpc only
+    ("dnf", "sdss", 547, "random", range(20)),
+    ("dnf", "moons", 61, "unfold", range(50)),
 )
 
 GOVERNOR = (
@@ -162,10 +168,11 @@ def main() -> None:
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--full", action="store_true", help="The issue's sets (hours) instead of the quick ones.")
     which.add_argument("--governor", action="store_true", help="MOONS sets planned with the mpc's motor governor off and on.")
+    which.add_argument("--dnf", action="store_true", help="The dnf on the issue's SDSS and MOONS sets.")
     parser.add_argument("--only", metavar="INSTRUMENT", help="Keep the sets of this instrument only.")
     parser.add_argument("--seeds", metavar="A:B", help="Keep the seeds A to B - 1 of each set (to finish a set stopped for time).")
     args = parser.parse_args()
-    sets = GOVERNOR if args.governor else FULL if args.full else QUICK
+    sets = GOVERNOR if args.governor else FULL if args.full else DNF if args.dnf else QUICK
     if args.only:
         sets = tuple(s for s in sets if s[1] == args.only)
         if not sets:
