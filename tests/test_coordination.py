@@ -248,6 +248,42 @@ def test_attempts_with_no_time_left_stay_at_the_start():
     assert runs == 1 and not complete
 
 
+def test_after_the_fallback_planner_this_planner_tries_again_from_where_it_stopped(monkeypatch):
+    # MOONS 61 unfold seed 35 under MOONS' zones: the mpc's fold from the targets stalls with two
+    # short; the dnf from there brings no one more home, but the mpc from the dnf's end brings all.
+    import types
+
+    from fiberplan.planners.coordination import legs
+
+    monkeypatch.setattr(legs, "_parking", lambda leg, end: None)
+    sc = fp.make_scenario("desi", 7, "random", 0)
+    calls = []
+
+    def still(leg, joints):
+        return types.SimpleNamespace(trajectory=fp.Trajectory(np.arange(len(joints)) * 0.01, joints))
+
+    def plan_leg(leg, time_limit_s=None, use_fallback=False, progress=None):
+        calls.append("fallback" if use_fallback else "own")
+        if use_fallback:  # moves positioner 0 a little towards its target: no one more home
+            nudged = leg.start.copy()
+            nudged[0] += 1e-3 * np.sign(leg.target[0] - leg.start[0])
+            return still(leg, np.stack([leg.start, nudged]))
+        if len(calls) <= 2:  # the first attempts stall where they start
+            return still(leg, np.stack([leg.start, leg.start]))
+        return fp.plan(leg, "mpc", {"route": "direct"})
+
+    joints, runs, complete = legs._attempts(sc, plan_leg, 2, None, True, False)
+    assert calls == ["own", "own", "fallback", "own"] and complete and runs == 4
+    np.testing.assert_array_equal(joints[0], sc.start)
+    np.testing.assert_array_equal(joints[-1], sc.target)
+    assert fp.verify(sc, fp.Trajectory(np.arange(len(joints)) * 0.01, joints)).ok
+    # With one fallback round (the rule before), the leg stops after the fallback.
+    calls.clear()
+    monkeypatch.setattr(legs, "FALLBACK_ROUNDS", 1)
+    _, _, complete = legs._attempts(sc, plan_leg, 2, None, True, False)
+    assert calls == ["own", "own", "fallback"] and not complete
+
+
 def test_when_every_route_leaves_positioners_short_the_fallback_planner_plans_the_whole_move(monkeypatch):
     """The fallback planner (the dnf for the mpc) alone over the whole move, with its own route,
     is a candidate once this planner's routes leave positioners short; the result says so."""

@@ -200,7 +200,7 @@ def _attempts(
     done_before = -1
     used = 0.0
     k = 0
-    fallback_used = False
+    fallbacks = 0
 
     def current_from(q: np.ndarray) -> Scenario:
         return dataclasses.replace(leg, start_deg=np.degrees(q), name=f"{leg.name}:fallback")
@@ -244,16 +244,27 @@ def _attempts(
                     continue
             parked = _parking(leg, end) if unblock else None
             if parked is None:
-                if fallback_used or not unblock:
+                if fallbacks >= FALLBACK_ROUNDS or not unblock:
                     break
-                # The last resort: one attempt of the fallback planner from where this one stalled.
-                fallback_used = True
+                # The last resort: an attempt of the fallback planner from where this one stalled.
+                fallbacks += 1
                 joints = trim(_plan_part(current_from(end), plan_leg, use_fallback=True)[0])
                 pieces.append(joints[1:])
                 end = joints[-1]
+                k += 1
                 if at_targets(leg, end).all():
-                    return np.concatenate(pieces), k + 1, True
-                break
+                    return np.concatenate(pieces), k, True
+                if fallbacks >= FALLBACK_ROUNDS:
+                    break
+                # Then this planner again from where the fallback stopped: a stall it left is a new
+                # start, however many it brought home (MOONS 61 unfold seed 35 under MOONS' zones,
+                # the fold from the targets: the dnf from the mpc's stall brings no one more home,
+                # the mpc from the dnf's end all). An attempt that brings no more home than the
+                # fallback is dropped as above.
+                done_before = int(at_targets(leg, end).sum())
+                current = dataclasses.replace(leg, start_deg=np.degrees(end), name=f"{leg.name}:after-fallback{fallbacks}")
+                attempts = max(attempts, k + 1)
+                continue
             detour = dataclasses.replace(leg, start_deg=np.degrees(end), target_values=np.degrees(parked), name=f"{leg.name}:parked")
             d_joints, _, _ = _attempts(detour, plan_leg, 2, None, unblock=False, strict=False)
             d_joints = trim(d_joints)
@@ -275,6 +286,11 @@ def _attempts(
     if not pieces:  # no attempt was made (no time left): the leg stays where it starts
         return leg.start[None].copy(), k, False
     return np.concatenate(pieces), k, False
+
+
+FALLBACK_ROUNDS = 2
+"""Attempts of the fallback planner per leg, each followed by this planner's own attempts from
+where it stopped (one until session 24)."""
 
 
 PARK_OFFSETS_DEG = (30.0, -30.0, 60.0, -60.0, 90.0, -90.0, 120.0, -120.0, 150.0, -150.0, 180.0, -180.0)
