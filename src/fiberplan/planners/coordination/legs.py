@@ -201,6 +201,7 @@ def _attempts(
     used = 0.0
     k = 0
     fallbacks = 0
+    park = unblock
 
     def current_from(q: np.ndarray) -> Scenario:
         return dataclasses.replace(leg, start_deg=np.degrees(q), name=f"{leg.name}:fallback")
@@ -242,7 +243,7 @@ def _attempts(
                     current = dataclasses.replace(leg, start_deg=np.degrees(end), name=f"{leg.name}:after-solo{k}")
                     attempts = max(attempts, k + 1)
                     continue
-            parked = _parking(leg, end) if unblock else None
+            parked = _parking(leg, end) if park else None
             if parked is None:
                 if fallbacks >= FALLBACK_ROUNDS or not unblock:
                     break
@@ -271,7 +272,7 @@ def _attempts(
             pieces.append(d_joints[1:])
             end = d_joints[-1]
             attempts = max(attempts, k + 2)  # the parked ones come back
-            unblock = False  # once per leg
+            park = False  # once per leg (the fallback planner may still follow)
         done_before = int(at_targets(leg, end).sum())
         current = dataclasses.replace(leg, start_deg=np.degrees(end), name=f"{leg.name}:attempt{k + 1}")
     if solo is not None and pieces:
