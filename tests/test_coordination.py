@@ -282,8 +282,10 @@ def test_after_the_fallback_planner_this_planner_tries_again_from_where_it_stopp
             return still(np.stack([leg.start, leg.start]))
         return fp.plan(leg, "mpc", {"route": "direct"})
 
-    joints, _, complete = legs._attempts(sc, plan_leg, 2, None, True, False)
+    notes = {}
+    joints, _, complete = legs._attempts(sc, plan_leg, 2, None, True, False, None, notes)
     assert complete and calls.count("fallback") == 1 and calls[-2:] == ["fallback", "own"]
+    assert notes["rescued"]  # the coordination layer then also tries the fallback planner's whole move
     assert bool(parked) == parks
     np.testing.assert_array_equal(joints[0], sc.start)
     np.testing.assert_array_equal(joints[-1], sc.target)
@@ -292,8 +294,37 @@ def test_after_the_fallback_planner_this_planner_tries_again_from_where_it_stopp
     calls.clear()
     parked.clear()
     monkeypatch.setattr(legs, "FALLBACK_ROUNDS", 1)
-    _, _, complete = legs._attempts(sc, plan_leg, 2, None, True, False)
+    notes = {}
+    _, _, complete = legs._attempts(sc, plan_leg, 2, None, True, False, None, notes)
     assert calls[-1] == "fallback" and not complete
+    assert notes.get("rescued", False) == parks  # a fallback after parking is itself one of the later rounds
+
+
+def test_a_plan_complete_only_through_the_later_fallback_rounds_is_weighed_against_the_fallback_planner(monkeypatch):
+    """MOONS 61 unfold seed 23 under MOONS' zones: the reverse leg completes through the later
+    fallback rounds in 51.6 s, the dnf's whole move in 13.7 s: the shorter is returned."""
+    from fiberplan.planners.coordination import layer
+
+    sc = fp.make_scenario("desi", 19, "random", 1)
+    quick = fp.plan(sc, "mpc", {"route": "direct"}).trajectory.joints
+    slow = np.concatenate([sc.start[None].repeat(400, axis=0), quick])  # complete, but after a long wait
+    real = layer._strategies
+
+    def slow_rescued(scenario, route, plan_leg, opts, consider):
+        if layer._WHOLE_FALLBACK.get():  # the fallback planner's own run
+            return real(scenario, route, plan_leg, opts, consider)
+        consider("direct", [layer._Piece("direct", slow, [], 1, 0.0, rescued=rescued)])
+        return "general"
+
+    monkeypatch.setattr(layer, "_strategies", slow_rescued)
+    rescued = True
+    result = fp.plan(sc, "mpc")
+    _check(sc, result)
+    assert [c["strategy"] for c in result.stats["candidates"]] == ["direct", "fallback planner"]
+    assert result.stats["chosen"] == "fallback planner"
+    rescued = False  # a plan complete by the earlier rules is kept as it is
+    result = fp.plan(sc, "mpc")
+    assert [c["strategy"] for c in result.stats["candidates"]] == ["direct"]
 
 
 def test_when_every_route_leaves_positioners_short_the_fallback_planner_plans_the_whole_move(monkeypatch):

@@ -55,6 +55,7 @@ class _Piece:
     wall_s: float
     overlap_steps: int = 0
     first_samples: int = 0  # samples before restarts and overlap shortened it (0: not known)
+    rescued: bool = False  # a leg of it needed the later fallback rounds (legs.Leg.rescued)
 
 
 def _join(scenario: Scenario, pieces: list[_Piece], dt: float, rest: int = 0) -> Trajectory:
@@ -78,7 +79,7 @@ def _direct(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piec
     t0 = time.perf_counter()
     leg = complete_leg(scenario, plan_leg, opts.attempts, strict=False, restarts=opts.restarts, solo=opts.solo)
     return [_Piece("direct", leg.joints, np.flatnonzero(scenario.has_target).tolist(), leg.runs, time.perf_counter() - t0,
-                   first_samples=leg.first_samples)]
+                   first_samples=leg.first_samples, rescued=leg.rescued)]
 
 
 def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piece] | None:
@@ -90,7 +91,7 @@ def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Pie
     if not leg.complete:
         return None
     return [_Piece("reverse (planned from the targets)", _reversed(leg.joints), np.flatnonzero(scenario.has_target).tolist(), leg.runs,
-                   time.perf_counter() - t0, first_samples=leg.first_samples)]
+                   time.perf_counter() - t0, first_samples=leg.first_samples, rescued=leg.rescued)]
 
 
 def _datum(scenario: Scenario) -> np.ndarray:
@@ -160,6 +161,7 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     if not (first.complete and second.complete):
         return None
     who = np.flatnonzero(movers).tolist()
+    rescued = first.rescued or second.rescued
     unfold = _reversed(second.joints)
     plain = first.first_samples + second.first_samples - 1  # the two legs as first planned, one after the other
     if opts.overlap:
@@ -167,11 +169,12 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
         if shift > 0:
             return [_Piece(f"{label}fold to the datum, then unfold from it (planned from the targets), overlapped by {shift} steps",
                            joints, who, first.runs + second.runs, first.wall_s + second.wall_s, overlap_steps=shift,
-                           first_samples=plain)]
+                           first_samples=plain, rescued=rescued)]
     return [
-        _Piece(f"{label}fold to the datum", first.joints, who, first.runs, first.wall_s, first_samples=first.first_samples),
+        _Piece(f"{label}fold to the datum", first.joints, who, first.runs, first.wall_s, first_samples=first.first_samples,
+               rescued=rescued),
         _Piece(f"{label}unfold from the datum (planned from the targets)", unfold, who, second.runs, second.wall_s,
-               first_samples=second.first_samples),
+               first_samples=second.first_samples, rescued=rescued),
     ]
 
 
@@ -338,11 +341,17 @@ def coordinate(
     def short() -> bool:
         return not candidates or min(scores[name][0] for name in candidates) > 0
 
-    if short() and fallback and not _WHOLE_FALLBACK.get():
+    def rescued() -> bool:
+        best = min(candidates, key=lambda name: scores[name]) if candidates else None
+        return best is not None and any(p.rescued for p in candidates[best])
+
+    if (short() or rescued()) and fallback and not _WHOLE_FALLBACK.get():
         # Positioners left short: the fallback planner over the whole move, with its own route
         # (inside a leg it is tried only from where an attempt stalled, when the tangle may
         # already be beyond it). MOONS 7 random seed 4 under MOONS' zones: 7 of 7 this way, 3 of 7
-        # by the mpc's direct plan.
+        # by the mpc's direct plan. Also where the best plan is complete only through the later
+        # fallback rounds inside a leg (legs.Leg.rescued): such legs are long (MOONS 61 unfold,
+        # MOONS' zones, seed 23: 51.6 s through them, 13.7 s by the fallback planner's whole move).
         consider("fallback planner", _whole_by_fallback(scenario, fallback, dt))
     if not candidates or (short() and "direct" not in candidates):  # the direct plan, with what it reached
         consider("direct (fallback)", _direct(scenario, recorded, opts))

@@ -27,13 +27,17 @@ from fiberplan.trajectory import PlanResult
 @dataclasses.dataclass(frozen=True)
 class Leg:
     """A planned leg: ``joints`` ``(K, N, 2)``, the planner ``runs`` it took, whether it is
-    ``complete``, and the samples it had before restarts shortened it (``first_samples``)."""
+    ``complete``, and the samples it had before restarts shortened it (``first_samples``);
+    ``rescued``: the fallback planner ran after the leg had parked, or the leg's own planner ran
+    again after the fallback planner (the rounds added in session 24: such legs are often long,
+    and the coordination layer then also tries the fallback planner's whole move)."""
 
     joints: np.ndarray
     runs: int
     complete: bool
     first_samples: int
     wall_s: float = 0.0
+    rescued: bool = False
 
 
 PlanLeg = Callable[..., PlanResult]
@@ -134,7 +138,8 @@ def complete_leg(
     along their own grid paths while everyone else holds (:mod:`.solo`), before the fallback
     planner and once more at the end."""
     t0 = time.perf_counter()
-    joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo)
+    notes: dict[str, bool] = {}
+    joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo, notes)
     first = len(joints)
     # Restarts help a leg whose planner brought everyone home in one run, its stragglers late; a
     # leg that needed further attempts has stragglers that restarts leave stuck again (measured
@@ -142,7 +147,7 @@ def complete_leg(
     if complete and restarts and runs == 1:
         joints, more = shorten_leg(leg, joints, plan_leg, restarts)
         runs += more
-    return Leg(joints, runs, complete, first, time.perf_counter() - t0)
+    return Leg(joints, runs, complete, first, time.perf_counter() - t0, rescued=notes.get("rescued", False))
 
 
 def shorten_leg(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: float, rounds: int = 2) -> tuple[np.ndarray, int]:
@@ -190,9 +195,11 @@ def shorten_leg(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: floa
 
 def _attempts(
     leg: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None, unblock: bool, strict: bool,
-    solo: tuple[float, float] | None = None,
+    solo: tuple[float, float] | None = None, notes: dict[str, bool] | None = None,
 ) -> tuple[np.ndarray, int, bool]:
-    """The attempts of :func:`complete_leg`."""
+    """The attempts of :func:`complete_leg`; ``notes["rescued"]`` is set when the rounds of
+    :data:`FALLBACK_ROUNDS` went beyond the single fallback attempt of before (see :class:`Leg`)."""
+    notes = {} if notes is None else notes
     if strict and leg.infeasible:  # a leg target that cannot be reached would break the joint between legs
         return leg.start[None].copy(), 0, False
     pieces: list[np.ndarray] = []
@@ -248,6 +255,7 @@ def _attempts(
                 if fallbacks >= FALLBACK_ROUNDS or not unblock:
                     break
                 # The last resort: an attempt of the fallback planner from where this one stalled.
+                notes["rescued"] = notes.get("rescued", False) or not park  # (none followed parking before)
                 fallbacks += 1
                 joints = trim(_plan_part(current_from(end), plan_leg, use_fallback=True)[0])
                 pieces.append(joints[1:])
@@ -263,6 +271,7 @@ def _attempts(
                 # the mpc from the dnf's end all). An attempt that brings no more home than the
                 # fallback is dropped as above.
                 done_before = int(at_targets(leg, end).sum())
+                notes["rescued"] = True
                 current = dataclasses.replace(leg, start_deg=np.degrees(end), name=f"{leg.name}:after-fallback{fallbacks}")
                 attempts = max(attempts, k + 1)
                 continue
