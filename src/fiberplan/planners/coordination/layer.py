@@ -353,7 +353,9 @@ def coordinate(
         # fallback rounds inside a leg (legs.Leg.rescued): such legs are long (MOONS 61 unfold,
         # MOONS' zones, seed 23: 51.6 s through them, 13.7 s by the fallback planner's whole move).
         consider("fallback planner", _whole_by_fallback(scenario, fallback, dt))
-    if not candidates or (short() and "direct" not in candidates):  # the direct plan, with what it reached
+    if not candidates or ((short() or rescued()) and "direct" not in candidates):  # the direct plan, with what it reached
+        # (Also against a rescued plan: MOONS 61 unfold seed 5 under MOONS' zones, the reverse route rescued
+        # 56.8 s, the fallback planner's whole move 2 short, the direct plan complete in 20.75 s.)
         consider("direct (fallback)", _direct(scenario, recorded, opts))
     chosen = min(candidates, key=lambda name: (scores[name], name != "via_datum"))
     if "via_datum" in candidates and chosen != "via_datum":
