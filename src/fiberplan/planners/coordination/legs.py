@@ -30,7 +30,8 @@ class Leg:
     ``complete``, and the samples it had before restarts shortened it (``first_samples``);
     ``rescued``: the fallback planner ran after the leg had parked, or the leg's own planner ran
     again after the fallback planner (the rounds added in session 24: such legs are often long,
-    and the coordination layer then also tries the fallback planner's whole move)."""
+    and the coordination layer then also tries the fallback planner's whole move and the direct
+    plan)."""
 
     joints: np.ndarray
     runs: int
