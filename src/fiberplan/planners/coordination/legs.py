@@ -256,7 +256,8 @@ def _attempts(
                 if fallbacks >= FALLBACK_ROUNDS or not unblock:
                     break
                 # The last resort: an attempt of the fallback planner from where this one stalled.
-                notes["rescued"] = notes.get("rescued", False) or not park  # (none followed parking before)
+                if not park:  # no fallback followed parking before
+                    notes["rescued"] = True
                 fallbacks += 1
                 joints = trim(_plan_part(current_from(end), plan_leg, use_fallback=True)[0])
                 pieces.append(joints[1:])

@@ -93,7 +93,8 @@ class DnfSettings(RouteSettings):
     retreat_s: float = setting(0.5, "duration of a retreat", unit="s", low=0.0, high=1e5, low_open=True, group="deadlocks")
     max_retreats: int = setting(3, "retreats per positioner and run", low=0, high=1000, group="deadlocks")
     # --- the route (fiberplan.planners.coordination; the other route settings: RouteSettings)
-    route_fallback_planner: str | None = setting("mpc", "the planner of a leg's last attempt when this one stalls (null: none, "
+    route_fallback_planner: str | None = setting("mpc", "the planner of a leg's last attempts (up to two) when this one stalls, "
+                                                 "and of the whole move when this one's routes fall short (null: none, "
                                                  "for studies of this planner alone)", choices=("mpc", "dnf", None), optional=True,
                                                  group="route")
     # --- run length

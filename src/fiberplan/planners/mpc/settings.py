@@ -95,7 +95,8 @@ class MpcSettings(RouteSettings):
     schedule_repair: bool = setting(True, "a positioner no timed path fits goes first; a placed neighbour is placed again after it",
                                     group="schedule")
     # --- the route (fiberplan.planners.coordination; the other route settings: RouteSettings)
-    route_fallback_planner: str | None = setting("dnf", "the planner of a leg's last attempt when this one stalls (null: none, "
+    route_fallback_planner: str | None = setting("dnf", "the planner of a leg's last attempts (up to two) when this one stalls, "
+                                                 "and of the whole move when this one's routes fall short (null: none, "
                                                  "for studies of this planner alone)", choices=("mpc", "dnf", None), optional=True,
                                                  group="route")
     # --- the solver
