@@ -9,6 +9,8 @@ move):
 - ``via_datum``: to the datum and out again (alpha through the datum's alpha);
 - ``best_fold``: to a folded configuration at the best alpha of each positioner's own (alpha
   anywhere; each leg's time is the larger of its two joints' moves);
+- ``nearest_datum``: to a folded configuration at the alpha of each positioner's own move nearest
+  the datum's (every arm then turns towards the datum's alpha or holds it, as through the datum);
 - ``retract_rotate_extend``: beta folded with alpha held, alpha turned folded, beta out again
   (the three in sequence: alpha turns only while folded);
 - ``concurrent``: the same joint paths with alpha turning during the beta moves (no ordering).
@@ -61,8 +63,11 @@ def route_ratios(scenario: fp.Scenario) -> dict[str, float]:
     best_fold = np.min(np.maximum(np.abs(hold - s[:, :1]) / w[0], beta_out[:, None])
                        + np.maximum(np.abs(g[:, :1] - hold) / w[0], beta_in[:, None]), axis=1)
     concurrent = np.maximum(alpha, beta_out + beta_in)
+    near = np.clip(datum[0], np.minimum(s[:, 0], g[:, 0]), np.maximum(s[:, 0], g[:, 0]))
+    held = np.column_stack([near, np.full(len(near), datum[1])])
+    nearest_datum = leg(s, held) + leg(held, g)
     return {"direct_bound_s": bound, **{name: float(v.max() / bound) for name, v in
-                                        (("via_datum", via_datum), ("best_fold", best_fold),
+                                        (("via_datum", via_datum), ("best_fold", best_fold), ("nearest_datum", nearest_datum),
                                          ("retract_rotate_extend", rre), ("concurrent", concurrent))}}
 
 
@@ -79,7 +84,7 @@ def main() -> None:
     for seed in range(args.seeds):
         scenario = fp.make_scenario(inst, args.positioners, args.kind, seed=seed)
         rows.append({"seed": seed} | route_ratios(scenario))
-    names = ["via_datum", "best_fold", "retract_rotate_extend", "concurrent"]
+    names = ["via_datum", "best_fold", "nearest_datum", "retract_rotate_extend", "concurrent"]
     summary = {name: {"median": statistics.median(r[name] for r in rows), "min": min(r[name] for r in rows),
                       "max": max(r[name] for r in rows)} for name in names}
     out = {"machine": machine_info(), "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),

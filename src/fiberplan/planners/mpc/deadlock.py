@@ -11,7 +11,8 @@ at a time (``formulations/mpc.md``, Deadlocks):
    the other gets :attr:`Level.TOP_PRIORITY`.
 2. **Top priority.** Otherwise it outranks everyone; its lower-priority neighbours in conflict
    fold their beta arms out of its way (yield) while it stays there.
-3. **Detour.** Deadlocked again (or still stuck two windows later): a pair resolution with its
+3. **Detour.** Deadlocked again (or still stuck two windows later; the leader of a waiting rule
+   that was not newly deadlocked itself: stalled, one window after the rule): a pair resolution with its
    closest neighbour (one goes first, the other to a waiting place and home afterwards) or a
    lone detour route around its neighbours (:mod:`~fiberplan.planners.mpc.detour`).
 4. **Retreat.** Still stuck at top priority two windows on: it folds (:attr:`Level.FOLDING`),
@@ -81,6 +82,8 @@ class Deadlocks:
         # The ladder.
         self.level = np.zeros(n, dtype=np.int64)
         self.level_since = np.zeros(n, dtype=np.int64)
+        self.rule_leader = np.zeros(n, dtype=bool)  # given top priority by a waiting rule (not deadlocked itself)
+        self.free_since = np.zeros(n, dtype=np.int64)  # the last step the safety layer did not hold it
         self.ever_deadlocked = np.zeros(n, dtype=bool)
         self.first_dead = np.zeros(n, dtype=np.int64)
         self.n_dead = np.zeros(n, dtype=np.int64)
@@ -138,6 +141,7 @@ class Deadlocks:
         self.ever_deadlocked |= new_dead
         self.level[new_dead] = Level.TOP_PRIORITY
         self.level_since[new_dead] = step
+        self.rule_leader[new_dead] = False
         return stalled, new_dead
 
     # ------------------------------------------------------------------ phase 2: the ladder
@@ -150,12 +154,21 @@ class Deadlocks:
         if self.settings.wait_rules and np.any(new_dead) and len(self.scenario.pairs):
             self._waiting_rules(step, q, at_goal, new_dead, c_now)
         # Still stuck with top priority for two more windows: retreat.
-        escalate = (self.level == Level.TOP_PRIORITY) & stalled & (step - self.level_since >= 2 * self.window)
+        # The leader of a waiting rule (not newly deadlocked itself) is escalated once it is stalled
+        # and a window has passed since the rule: its waiter's way out did not free it (DESI 50,000 seed 0: a pair started 32 um apart, the
+        # waiter pinned at its hard stops, the leader held by the safety layer for 80 more steps).
+        blocked = self.rule_leader & (step - self.free_since >= self.window)
+        patience = np.where(blocked, 1, 2) * self.window
+        escalate = (self.level == Level.TOP_PRIORITY) & stalled & (step - self.level_since >= patience)
         if self.settings.detours:
             self._detours(step, q, ttg, new_dead, escalate, c_now)
         self._retreats(step, q, ttg, at_goal, escalate)
         for who in self.routes.passed(step, q, self.step_rad, leaving=self.level >= Level.FOLDING):
             self.last_progress[who] = self.last_best_ever[who] = step
+
+    def held(self, step: int, held: np.ndarray) -> None:
+        """Note who the safety layer held this step (a leader held for a window is escalated sooner)."""
+        self.free_since[~held] = step
 
     def _waiting_rules(self, step: int, q: np.ndarray, at_goal: np.ndarray, new_dead: np.ndarray, c_now: np.ndarray) -> None:
         """A deadlocked pair whose targets impose an order: the one that must wait goes to a
@@ -174,6 +187,7 @@ class Deadlocks:
                     self.level[waiter] = Level.NORMAL
                     self.level[leader] = Level.TOP_PRIORITY
                     self.level_since[leader] = step
+                    self.rule_leader[leader] = not new_dead[leader]
                     self.n_rules += 1
                     break
 
@@ -212,6 +226,7 @@ class Deadlocks:
                     escalate[who] = False
                     level[who] = Level.TOP_PRIORITY
                     self.level_since[who] = step
+                    self.rule_leader[who] = False
                     self.last_progress[who] = step
                     # Measured along the new route from the next step.
                     self.best_ttg[who] = np.inf if settings.route_progress else ttg[who]
@@ -222,6 +237,7 @@ class Deadlocks:
         level, since = self.level, self.level_since
         level[escalate] = Level.FOLDING
         since[escalate] = step
+        self.rule_leader[escalate] = False
         self.retreats += int(escalate.sum())
         folded = np.abs(q[:, 1] - self.datum[:, 1]) <= _TOL
         turned = folded & (np.abs(q[:, 0] - self.goal_final[:, 0]) <= _TOL)

@@ -188,6 +188,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
                 governed = np.any(q_next != proposed, axis=1)
             q_next, held, iters = safety.apply(q, q_next, c_now, partial(outranks, rank=rank, defer_to=deadlocks.wait_first))
             stats.safety_holds += int(held.sum())
+            deadlocks.held(step, held)
             stats.safety_iterations_max = max(stats.safety_iterations_max, iters)
 
             # --- publish plans for the next round (shifted by one step).
