@@ -384,3 +384,31 @@ def test_a_large_leg_with_few_away_is_planned_on_the_part_that_moves(monkeypatch
     traj = fp.Trajectory(np.arange(len(joints)) * leg.instrument.control_dt_s, joints)
     assert fp.verify(leg, traj).ok and legs.at_targets(leg, joints[-1]).all()
     assert legs.at_targets(leg, whole[-1]).all()
+
+
+def test_a_leg_is_restarted_by_its_last_arrival_within_the_tolerance_not_by_its_last_sample():
+    # DESI 50,000 seed 0: the last arrival at 1.196 x the bound, the last sample (exactly on the
+    # target) at 1.2016 x; four restarts then cost 80 s of planning and gained nothing.
+    from fiberplan.kinematics import straight_path
+    from fiberplan.planners.coordination.legs import RESTART_ABOVE, shorten_leg
+
+    sc = fp.make_scenario("desi", 7, "random", 0)
+    leg = leg_scenario(sc, sc.start, sc.target, "direct")
+    dt = 0.01
+    step = leg.instrument.speeds_rad_s * dt
+    bound_s = float(np.max(np.abs(leg.target - leg.start) / leg.instrument.speeds_rad_s))
+    k = int(np.ceil(bound_s / dt))
+    moves = straight_path(leg.start, leg.target, step, k + 1)  # (N, K, 2), at the targets by the end
+    joints = np.concatenate([leg.start[None], moves.transpose(1, 0, 2)])
+    wait = int(np.ceil((RESTART_ABOVE - 1.0) * bound_s / dt)) + 3  # samples past 1.2 x the bound
+    near = leg.target.copy()
+    near[0, 1] += 1e-7  # within the tolerance disc, not exactly on the target
+    joints = np.concatenate([joints, np.repeat(near[None], wait, axis=0), leg.target[None]])
+    assert (len(joints) - 1) * dt > RESTART_ABOVE * bound_s
+    kept, runs = shorten_leg(leg, joints, lambda *a, **kw: pytest.fail("no restart expected"), dt)
+    assert runs == 0 and kept is joints
+    # Away from the target (outside the disc) until the end: restarted.
+    far = joints.copy()
+    far[-wait - 1:-1, 0, 1] += 0.05
+    with pytest.raises(RuntimeError, match="restart planned"):
+        shorten_leg(leg, far, lambda *a, **kw: (_ for _ in ()).throw(RuntimeError("restart planned")), dt)

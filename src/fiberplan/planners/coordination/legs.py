@@ -19,9 +19,10 @@ from collections.abc import Callable
 import numpy as np
 
 from fiberplan.geometry import motion_bound, path_clearance, point_extents
+from fiberplan.metrics import arrival_times
 from fiberplan.planners.coordination.solo import solo_moves
 from fiberplan.scenario import TARGET_JOINTS, TARGET_NONE, Scenario, _replace
-from fiberplan.trajectory import PlanResult
+from fiberplan.trajectory import PlanResult, Trajectory
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,7 +155,8 @@ def complete_leg(
 def shorten_leg(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: float, rounds: int = 2) -> tuple[np.ndarray, int]:
     """A complete leg planned again from where most of its movers had arrived; the shortest kept.
 
-    A leg within :data:`RESTART_ABOVE` times its lower bound is kept as it is. Otherwise, for
+    A leg whose last arrival (within the tolerance, as the results count it) is within
+    :data:`RESTART_ABOVE` times its lower bound is kept as it is. Otherwise, for
     each fraction ``f`` of :data:`RESTART_FRACTIONS`, the leg is cut at the first sample at
     which all but ``1 - f`` of its movers sat on their targets, and completed from there by new
     planner runs (:func:`complete_leg`, without parking). A restart is kept only if the whole
@@ -165,7 +167,12 @@ def shorten_leg(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: floa
     runs = 0
     best = joints
     bound_s = float(np.max(np.abs(leg.target - leg.start) / leg.instrument.speeds_rad_s, initial=0.0))
-    if (len(joints) - 1) * dt_s <= RESTART_ABOVE * bound_s:
+    # The leg's makespan as the results count it (the last arrival within the tolerance), not its
+    # last sample (exactly on target, a step or two later): DESI 50,000 seed 0 arrives at 1.196 x
+    # the bound, its last sample at 1.2016 x, and four restarts (80 s) gained nothing.
+    arrive = arrival_times(leg, Trajectory(np.arange(len(joints)) * dt_s, joints))[leg.has_target]
+    makespan_s = float(arrive.max()) if len(arrive) and np.isfinite(arrive).all() else (len(joints) - 1) * dt_s
+    if makespan_s <= RESTART_ABOVE * bound_s:
         return joints, 0
     tried_up_to = 0  # cuts before the last kept one were tried in an earlier round, from the same samples
     for _ in range(rounds):
