@@ -12,8 +12,8 @@ at a time (``formulations/mpc.md``, Deadlocks):
 2. **Top priority.** Otherwise it outranks everyone; its lower-priority neighbours in conflict
    fold their beta arms out of its way (yield) while it stays there.
 3. **Detour.** Deadlocked again (or still stuck two windows later; the leader of a waiting rule
-   that was not newly deadlocked itself: stalled, one window after the rule): a pair resolution with its
-   closest neighbour (one goes first, the other to a waiting place and home afterwards) or a
+   that was not newly deadlocked itself, stalled and held by the safety layer for a window: one
+   window after the rule): a pair resolution with its closest neighbour (one goes first, the other to a waiting place and home afterwards) or a
    lone detour route around its neighbours (:mod:`~fiberplan.planners.mpc.detour`).
 4. **Retreat.** Still stuck at top priority two windows on: it folds (:attr:`Level.FOLDING`),
    turns alpha to its target while folded (:attr:`Level.TURNING`), and unfolds with top
@@ -154,9 +154,10 @@ class Deadlocks:
         if self.settings.wait_rules and np.any(new_dead) and len(self.scenario.pairs):
             self._waiting_rules(step, q, at_goal, new_dead, c_now)
         # Still stuck with top priority for two more windows: retreat.
-        # The leader of a waiting rule (not newly deadlocked itself) is escalated once it is stalled
-        # and a window has passed since the rule: its waiter's way out did not free it (DESI 50,000 seed 0: a pair started 32 um apart, the
-        # waiter pinned at its hard stops, the leader held by the safety layer for 80 more steps).
+        # The leader of a waiting rule (not newly deadlocked itself), stalled and held by the safety
+        # layer for a window, is escalated a window after the rule, not two: its waiter's way out did
+        # not free it (DESI 50,000 seed 0: a pair started 32 um apart, the waiter pinned at its hard
+        # stops, the leader held by the safety layer for 80 more steps).
         blocked = self.rule_leader & (step - self.free_since >= self.window)
         patience = np.where(blocked, 1, 2) * self.window
         escalate = (self.level == Level.TOP_PRIORITY) & stalled & (step - self.level_since >= patience)
