@@ -17,7 +17,7 @@ from fiberplan.metrics import summarize
 from fiberplan.planners import make_settings, plan
 from fiberplan.planners.mpc import MpcSettings
 from fiberplan.planners.mpc.priority import outranks
-from fiberplan.planners.mpc.qp import STATUS_FAILED, STATUS_SOLVED, OsqpOptions, PositionerQP, QpData, QpLayout, QpWeights
+from fiberplan.planners.mpc.qp import STATUS_FAILED, STATUS_INACCURATE, STATUS_SOLVED, OsqpOptions, PositionerQP, QpData, QpLayout, QpWeights
 from fiberplan.planners.mpc.routes import route_path
 from fiberplan.planners.mpc.waiting import waiting_configuration
 from fiberplan.planners.safety import SafetyLayer
@@ -222,6 +222,33 @@ def test_osqp_matches_cvxpy_on_planner_conflicts(monkeypatch):
         np.testing.assert_allclose(layout.split(x)[0], z_ref, atol=5e-3)
 
 
+@pytest.mark.parametrize("max_input_change", [None, 0.3])
+def test_workspaces_from_the_set_up_template_solve_bit_identically(max_input_change):
+    """Workspaces built from a shared :class:`SetupTemplate` give the same solutions, bit for bit,
+    as workspaces set up through osqp's public interface, solve after solve (warm starts
+    included), and one workspace's updates do not reach another's (OSQP copies its inputs)."""
+    from fiberplan.planners.mpc.qp import SetupTemplate, cap_bounds
+
+    layout = QpLayout(6, 3, WEIGHTS, max_input_change)
+    options = OsqpOptions()
+    template = SetupTemplate(layout, options)
+    assert template.usable
+    made = [template.new() for _ in range(3)]  # the first is the one the template was built with
+    public = [PositionerQP(layout, options) for _ in range(3)]
+    rng = np.random.default_rng(11)
+    for _ in range(8):
+        for a, b in zip(made, public, strict=True):
+            data = _random_data(rng, layout)
+            if max_input_change is not None:
+                data.v_prev = np.clip(data.v_prev, -1 + max_input_change, 1 - max_input_change)
+            q, lo, hi, ax = layout.assemble(data)
+            st_b, x_b, it_b = b.solve(data)
+            cap_bounds(lo, hi)
+            st_a, x_a, it_a = a.solve_capped(q, lo, hi, ax)
+            assert (st_a, it_a) == (st_b, it_b) and st_a in (STATUS_SOLVED, STATUS_INACCURATE)
+            assert np.array_equal(x_a, x_b)
+
+
 def test_fixed_sparsity_pattern_and_infinite_unused_rows():
     layout = QpLayout(5, 4, WEIGHTS, None)
     data = _random_data(np.random.default_rng(1), layout)
@@ -259,7 +286,7 @@ def test_forced_osqp_failures_keep_the_plan_safe(monkeypatch):
     def failing_solve(self, q, lo, hi, ax):
         return STATUS_FAILED, None, 0
 
-    monkeypatch.setattr(mpc_qp.PositionerQP, "solve_assembled", failing_solve)
+    monkeypatch.setattr(mpc_qp.PositionerQP, "solve_capped", failing_solve)
     scenario = make_scenario("desi", 19, "random", 1)
     result = plan(scenario, "mpc", {"max_duration_factor": 2.0})
     _check_safe(result)

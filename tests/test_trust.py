@@ -107,10 +107,10 @@ def test_plan_result_with_a_non_finite_sample_cannot_be_built():
 @pytest.fixture
 def flaky_osqp(monkeypatch):
     """Every 100th OSQP solve reports "solved" with a NaN solution; every 150th raises."""
-    original = mpc_qp.PositionerQP.solve_assembled
+    original = mpc_qp.PositionerQP.solve_capped  # the executors' per-solve path
     calls = {"n": 0}
 
-    def solve_assembled(self, q, lo, hi, ax):
+    def solve_capped(self, q, lo, hi, ax):
         calls["n"] += 1
         if calls["n"] % 150 == 0:
             raise RuntimeError("backend exploded")
@@ -119,7 +119,7 @@ def flaky_osqp(monkeypatch):
             return mpc_qp.STATUS_SOLVED, np.full_like(x, np.nan), iters
         return status, x, iters
 
-    monkeypatch.setattr(mpc_qp.PositionerQP, "solve_assembled", solve_assembled)
+    monkeypatch.setattr(mpc_qp.PositionerQP, "solve_capped", solve_capped)
     return calls
 
 

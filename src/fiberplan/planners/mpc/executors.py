@@ -32,6 +32,8 @@ from fiberplan.planners.mpc.qp import (
     PositionerQP,
     QpData,
     QpLayout,
+    SetupTemplate,
+    cap_bounds,
     checked,
     solve_with_qpsolvers,
 )
@@ -77,6 +79,7 @@ class _Block:
         self.workspaces: dict[int, PositionerQP] = {}
         self.fresh_after = fresh_after
         self.last_step: dict[int, int] = {}  # the step each workspace last solved at (with fresh_after)
+        self._template: SetupTemplate | None = None  # made with the first workspace
 
     def solve(self, batch: QpBatch, step: int = 0) -> QpBatchResult:
         m = len(batch.index)
@@ -92,6 +95,7 @@ class _Block:
             q, lo, hi, ax = self.layout.assemble_batch(
                 batch.z_ref, batch.z_lo, batch.z_hi, batch.v_prev, batch.coef, batch.rhs, batch.active, batch.slack_linear
             )
+            cap_bounds(lo, hi)
         for r in range(m):
             t0 = time.perf_counter()
             # A backend that raises fails this one solve: the positioner holds, the plan goes on.
@@ -104,11 +108,13 @@ class _Block:
                             workspace = None  # idle too long: a fresh workspace, as if it had been freed
                         self.last_step[key] = step
                     if workspace is None:
-                        workspace = PositionerQP(self.layout, self.options)
+                        if self._template is None:
+                            self._template = SetupTemplate(self.layout, self.options)
+                        workspace = self._template.new()
                         self.workspaces[key] = workspace
                         created += 1
                     t0 = time.perf_counter()
-                    st, x, it = checked(*workspace.solve_assembled(q[r], lo[r], hi[r], ax[r]))
+                    st, x, it = checked(*workspace.solve_capped(q[r], lo[r], hi[r], ax[r]))
                 else:
                     st, x, it = checked(*solve_with_qpsolvers(self.layout, batch.data(r), self.qp_solver))
             except Exception as e:  # any backend failure is one failed solve

@@ -263,6 +263,62 @@ class OsqpOptions:
     check_termination: int = 10
 
 
+class SetupTemplate:
+    """What every workspace of one layout is set up from, converted for OSQP once.
+
+    ``osqp.OSQP.setup`` checks and converts its matrices (a lower-triangle test of ``P``, CSC
+    copies, dtype casts) and builds a settings object on every call: about as long as the C
+    set-up itself for these small QPs, and the same for every workspace of a layout. Here the
+    public set-up runs once (the first workspace), and later workspaces are built by the same
+    extension constructor it calls, from the same converted inputs (OSQP copies its matrices and
+    settings into each workspace, so sharing them is safe; tested: the same solutions, bit for
+    bit). ``usable`` is false if a future osqp release changes these internals; workspaces are
+    then set up through the public interface.
+    """
+
+    def __init__(self, layout: QpLayout, options: OsqpOptions) -> None:
+        self.layout, self.options = layout, options
+        first = PositionerQP(layout, options)
+        solver = first._solver
+        ext = getattr(solver, "ext", None)
+        self.usable = first._ext is not None and all(hasattr(ext, a) for a in ("OSQPSolver", "CSC")) and hasattr(solver, "settings")
+        self.first: PositionerQP | None = first  # handed to the first caller of ``new``
+        if self.usable:
+            dtype = np.float64 if ext.OSQP_USE_FLOAT != 1 else np.float32
+            P, q, A, lo, hi = _setup_inputs(layout)
+            infty = first._infty
+            # As ``osqp.OSQP._infer_mnpqalu`` and ``setup`` convert them (P is upper-triangular, both CSC, sorted).
+            self._args = (
+                ext.CSC(P.astype(dtype)), q.astype(dtype), ext.CSC(A.astype(dtype)),
+                np.maximum(lo, -infty).astype(dtype), np.minimum(hi, infty).astype(dtype),
+                A.shape[0], A.shape[1], solver.settings,
+            )
+            self._ext_module = ext
+
+    def new(self) -> PositionerQP:
+        """A workspace set up from the template (the first call returns the one built to make it)."""
+        if self.first is not None:
+            first, self.first = self.first, None
+            return first
+        if not self.usable:
+            return PositionerQP(self.layout, self.options)
+        workspace = PositionerQP.__new__(PositionerQP)
+        workspace.layout = self.layout
+        workspace._solver = None
+        workspace._ext = self._ext_module.OSQPSolver(*self._args)
+        workspace._infty = _OSQP_INFTY
+        return workspace
+
+
+_OSQP_INFTY = 1e30  # osqp's OSQP_INFTY (builtin algebra); checked against the library in PositionerQP
+
+
+def _setup_inputs(layout: QpLayout) -> tuple:
+    """The set-up problem of every workspace: ``P`` (upper triangle), ``q = 0``, ``A`` with its
+    collision coefficients zero, and the bounds ``l0``, ``u0`` (capped at 1e30)."""
+    return layout.P_upper, np.zeros(layout.n_var), layout.A.copy(), layout.l0, np.minimum(layout.u0, 1e30)
+
+
 class PositionerQP:
     """One positioner's persistent OSQP workspace: set up once, then ``update`` + warm start."""
 
@@ -273,12 +329,13 @@ class PositionerQP:
         # The builtin algebra named explicitly: the same linear algebra on every machine (results
         # reproducible), and OSQP() skips probing for the optional MKL/CUDA backends (0.2 ms each).
         self._solver = osqp.OSQP(algebra="builtin")
+        P, q, A, lo, hi = _setup_inputs(layout)
         self._solver.setup(
-            layout.P_upper,
-            np.zeros(layout.n_var),
-            layout.A.copy(),
-            layout.l0,
-            np.minimum(layout.u0, 1e30),
+            P,
+            q,
+            A,
+            lo,
+            hi,
             verbose=False,
             polishing=False,
             warm_starting=True,
@@ -297,6 +354,8 @@ class PositionerQP:
         ext = getattr(self._solver, "_solver", None)
         self._ext = ext if all(hasattr(ext, a) for a in ("update_data_vec", "update_data_mat", "solve", "info", "solution")) else None
         self._infty = float(self._solver.constant("OSQP_INFTY"))
+        if self._infty != _OSQP_INFTY:
+            self._ext = None  # not the library this was written for: the public interface throughout
 
     def solve(self, data: QpData) -> tuple[int, np.ndarray | None, int]:
         """Update the workspace and solve; returns ``(status, x or None, iterations)``."""
@@ -308,23 +367,40 @@ class PositionerQP:
             self._solver.update(q=q, l=lo, u=hi, Ax=ax)
             res = self._solver.solve(raise_error=False)
             status_val, x, iters = int(res.info.status_val), res.x, int(res.info.iter)
-        else:
-            ext = self._ext
-            ext.update_data_vec(q=q, l=np.maximum(lo, -self._infty), u=np.minimum(hi, self._infty))
-            ext.update_data_mat(P_x=None, P_i=None, A_x=ax, A_i=None)
-            ext.solve()
-            info = ext.info
-            status_val, iters = int(info.status_val), int(info.iter)
-            x = np.array(ext.solution.x) if status_val in (STATUS_SOLVED, STATUS_INACCURATE) else None
-        if status_val in (STATUS_SOLVED, STATUS_INACCURATE) and x is not None:
-            return checked(status_val, np.asarray(x), iters)
-        return STATUS_FAILED, None, iters
+            if status_val in (STATUS_SOLVED, STATUS_INACCURATE) and x is not None:
+                return checked(status_val, np.asarray(x), iters)
+            return STATUS_FAILED, None, iters
+        return self.solve_capped(q, np.maximum(lo, -self._infty), np.minimum(hi, self._infty), ax)
+
+    def solve_capped(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, ax: np.ndarray) -> tuple[int, np.ndarray | None, int]:
+        """:meth:`solve_assembled` with the bounds already within OSQP's infinity (``cap_bounds``):
+        the per-solve path of the executors. The answer is checked (:func:`checked`)."""
+        ext = self._ext
+        if ext is None:
+            return self.solve_assembled(q, lo, hi, ax)
+        ext.update_data_vec(q=q, l=lo, u=hi)
+        ext.update_data_mat(P_x=None, P_i=None, A_x=ax, A_i=None)
+        ext.solve()
+        info = ext.info
+        status_val, iters = int(info.status_val), int(info.iter)
+        if status_val not in (STATUS_SOLVED, STATUS_INACCURATE):
+            return STATUS_FAILED, None, iters
+        x = np.array(ext.solution.x)
+        if not np.isfinite(x).all():
+            return STATUS_NON_FINITE, None, iters
+        return status_val, x, iters
+
+
+def cap_bounds(lo: np.ndarray, hi: np.ndarray) -> None:
+    """Bounds of a batch capped at OSQP's infinity in place, as ``osqp.OSQP.update`` caps them."""
+    np.maximum(lo, -_OSQP_INFTY, out=lo)
+    np.minimum(hi, _OSQP_INFTY, out=hi)
 
 
 def checked(status: int, x: np.ndarray | None, iterations: int) -> tuple[int, np.ndarray | None, int]:
     """A backend's answer with every entry checked: a non-finite solution is a failure, whatever
     status the backend gave (``STATUS_NON_FINITE``, no solution)."""
-    if status in USABLE and (x is None or not np.all(np.isfinite(x))):
+    if status in USABLE and (x is None or not np.isfinite(x).all()):
         return STATUS_NON_FINITE, None, iterations
     return status, x, iterations
 
