@@ -35,15 +35,25 @@ def route_path(
     ``m`` no earlier than control step ``depart[m]``, holding where it is until then; ``step``
     is the control step of the path's first move.
     """
+    # Two joints: plain floats, the same IEEE operations as the numpy form (``p + clip(r - p,
+    # -s, s)``, the pass test ``|p - r| <= ROUTE_PASS * s``), without numpy's per-call overhead
+    # on 2-element arrays (this runs for every positioner on a route at every step).
     out = np.empty((n_steps, 2))
-    p = q.astype(float)
-    last = len(route) - 1
+    p0, p1 = float(q[0]), float(q[1])
+    s0, s1 = float(step_rad[0]), float(step_rad[1])
+    pass0, pass1 = float(ROUTE_PASS * step_rad[0]), float(ROUTE_PASS * step_rad[1])
+    way = np.asarray(route, dtype=float).tolist()
+    times = None if depart is None else np.asarray(depart).tolist()
+    last = len(way) - 1
     for k in range(n_steps):
-        while pos < last and np.all(np.abs(p - route[pos]) <= ROUTE_PASS * step_rad) and (depart is None or step + k >= depart[pos + 1]):
+        while pos < last and abs(p0 - way[pos][0]) <= pass0 and abs(p1 - way[pos][1]) <= pass1 and (times is None or step + k >= times[pos + 1]):
             pos += 1
-        if depart is None or step + k >= depart[pos]:
-            p = p + np.clip(route[pos] - p, -step_rad, step_rad)
-        out[k] = p
+        if times is None or step + k >= times[pos]:
+            r0, r1 = way[pos]
+            p0 = p0 + min(max(r0 - p0, -s0), s0)
+            p1 = p1 + min(max(r1 - p1, -s1), s1)
+        out[k, 0] = p0
+        out[k, 1] = p1
     return out
 
 
