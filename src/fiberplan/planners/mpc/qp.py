@@ -370,11 +370,13 @@ class PositionerQP:
             if status_val in (STATUS_SOLVED, STATUS_INACCURATE) and x is not None:
                 return checked(status_val, np.asarray(x), iters)
             return STATUS_FAILED, None, iters
-        return self.solve_capped(q, np.maximum(lo, -self._infty), np.minimum(hi, self._infty), ax)
+        return checked(*self.solve_capped(q, np.maximum(lo, -self._infty), np.minimum(hi, self._infty), ax))
 
     def solve_capped(self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, ax: np.ndarray) -> tuple[int, np.ndarray | None, int]:
         """:meth:`solve_assembled` with the bounds already within OSQP's infinity (``cap_bounds``):
-        the per-solve path of the executors. The answer is checked (:func:`checked`)."""
+        the per-solve path of the executors. The answer's entries are *not* checked here: the
+        caller passes it through :func:`checked` (the executors do, for every backend), so that
+        each solution is checked once."""
         ext = self._ext
         if ext is None:
             return self.solve_assembled(q, lo, hi, ax)
@@ -385,10 +387,7 @@ class PositionerQP:
         status_val, iters = int(info.status_val), int(info.iter)
         if status_val not in (STATUS_SOLVED, STATUS_INACCURATE):
             return STATUS_FAILED, None, iters
-        x = np.array(ext.solution.x)
-        if not np.isfinite(x).all():
-            return STATUS_NON_FINITE, None, iters
-        return status_val, x, iters
+        return status_val, np.array(ext.solution.x), iters
 
 
 def cap_bounds(lo: np.ndarray, hi: np.ndarray) -> None:
