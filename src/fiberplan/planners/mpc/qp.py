@@ -263,6 +263,9 @@ class OsqpOptions:
     check_termination: int = 10
 
 
+_OSQP_INFTY = 1e30  # osqp's OSQP_INFTY (builtin algebra); checked against the library in PositionerQP
+
+
 class SetupTemplate:
     """What every workspace of one layout is set up from, converted for OSQP once.
 
@@ -286,11 +289,10 @@ class SetupTemplate:
         if self.usable:
             dtype = np.float64 if ext.OSQP_USE_FLOAT != 1 else np.float32
             P, q, A, lo, hi = _setup_inputs(layout)
-            infty = first._infty
             # As ``osqp.OSQP._infer_mnpqalu`` and ``setup`` convert them (P is upper-triangular, both CSC, sorted).
             self._args = (
                 ext.CSC(P.astype(dtype)), q.astype(dtype), ext.CSC(A.astype(dtype)),
-                np.maximum(lo, -infty).astype(dtype), np.minimum(hi, infty).astype(dtype),
+                np.maximum(lo, -_OSQP_INFTY).astype(dtype), hi.astype(dtype),
                 A.shape[0], A.shape[1], solver.settings,
             )
             self._ext_module = ext
@@ -310,13 +312,10 @@ class SetupTemplate:
         return workspace
 
 
-_OSQP_INFTY = 1e30  # osqp's OSQP_INFTY (builtin algebra); checked against the library in PositionerQP
-
-
 def _setup_inputs(layout: QpLayout) -> tuple:
     """The set-up problem of every workspace: ``P`` (upper triangle), ``q = 0``, ``A`` with its
-    collision coefficients zero, and the bounds ``l0``, ``u0`` (capped at 1e30)."""
-    return layout.P_upper, np.zeros(layout.n_var), layout.A.copy(), layout.l0, np.minimum(layout.u0, 1e30)
+    collision coefficients zero, and the bounds ``l0``, ``u0`` (capped at OSQP's infinity)."""
+    return layout.P_upper, np.zeros(layout.n_var), layout.A.copy(), layout.l0, np.minimum(layout.u0, _OSQP_INFTY)
 
 
 class PositionerQP:
