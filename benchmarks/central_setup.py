@@ -7,6 +7,13 @@ the warm start, the lines it activates (the central settings' defaults, or ``--s
 make the first NLP of the candidate; that NLP is built (``set-up``: expressions, derivatives,
 ``nlpsol``, the start point) and, unless ``--build-only``, solved once by IPOPT (``max_wall_s``
 caps it). Compare two versions of the code with ``PYTHONPATH=<snapshot>/src``.
+
+With ``--whole``, each case is the whole reference instead (issue 25's measure: set-up within 10 %
+of the solves, per seed): every start (``straight``, ``sequential``, the ``mpc``'s and the
+``dnf``'s plans), every lazy round; the row gives the set-up and the IPOPT time summed over them,
+the NLPs and iterations, the process's CPU time and the optimum found::
+
+    python benchmarks/central_setup.py --whole --cases sdss:7:0-4 --out benchmarks/results/central_setup_whole.json
 """
 
 from __future__ import annotations
@@ -61,11 +68,36 @@ def one(name: str, n: int, seed: int, overrides: dict[str, Any], build_only: boo
     return row
 
 
+def whole(name: str, n: int, seed: int, overrides: dict[str, Any]) -> dict[str, Any]:
+    from fiberplan.planners import make_settings, plan
+    from fiberplan.planners.central.solve import solve_central
+    from fiberplan.studies.scenarios import hard_scenario
+
+    scenario = hard_scenario(name, n, seed)
+    settings = make_settings("central", scenario, {"warm_start": ["straight", "sequential", "mpc", "dnf"], **overrides})
+    warm = [plan(scenario, p) for p in settings.warm_start if p not in ("straight", "sequential")]
+    wall, cpu = time.perf_counter(), time.process_time()
+    solution, _ = solve_central(scenario, settings, warm_results=warm)
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    best = solution.candidates[0]
+    build_s = sum(c.build_s for c in solution.candidates)
+    solve_s = sum(c.solve_s for c in solution.candidates)
+    return {
+        "instrument": name, "n_positioners": n, "seed": seed, "build_s": build_s, "solve_s": solve_s,
+        "build_over_solve": build_s / solve_s if solve_s > 0 else None, "wall_s": wall, "cpu_s": cpu,
+        "nlps": sum(len(c.attempts) for c in solution.candidates), "iterations": sum(c.iterations for c in solution.candidates),
+        "converged": best.converged, "chosen": best.source, "objective": best.objective,
+        "makespan_over_bound": best.makespan_s / solution.lower_bound_s if solution.lower_bound_s > 0 else None,
+        "solves": {c.source: [list(a) for a in c.attempts] for c in solution.candidates},
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default="sdss:7:0-4,moons:7:0-4", help="INSTRUMENT:N:SEEDS, comma-separated")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=JSON", help="a central setting, e.g. max_wall_s=120")
     parser.add_argument("--build-only", action="store_true", help="build the NLPs, do not solve them")
+    parser.add_argument("--whole", action="store_true", help="the whole reference per case (every start and lazy round)")
     parser.add_argument("--out", type=Path, help="JSON result file (refused if it exists)")
     args = parser.parse_args()
     if args.out is not None and args.out.exists():
@@ -78,13 +110,20 @@ def main() -> None:
         overrides[key] = json.loads(value)
     rows = []
     for name, n, seed in parse_cases(args.cases):
+        if args.whole:
+            row = whole(name, n, seed, overrides)
+            rows.append(row)
+            print(f"{name} {n} seed {seed}: {row['nlps']} NLPs, set-up {row['build_s']:.2f} s, IPOPT {row['solve_s']:.1f} s "
+                  f"(set-up / solves {row['build_over_solve']:.3f}), {row['makespan_over_bound']:.4f} x the bound ({row['chosen']})",
+                  flush=True)
+            continue
         row = one(name, n, seed, overrides, args.build_only)
         rows.append(row)
         ratio = "" if row["build_over_solve"] is None else f", set-up / solve {row['build_over_solve']:.3f}"
         print(f"{name} {n} seed {seed}: {row['lines']} lines, set-up {row['build_s']:.3f} s, "
               f"solve {row['solve_s'] if row['solve_s'] is not None else '-'} s ({row['status']}){ratio}", flush=True)
     out = {
-        "name": "central_setup",
+        "name": "central_setup_whole" if args.whole else "central_setup",
         "date_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "machine": machine_info(("casadi",)),
         "command": "python " + " ".join(sys.argv),

@@ -256,13 +256,14 @@ def test_a_solution_short_of_lines_is_not_converged(crossing: Scenario) -> None:
 
 @pytest.mark.parametrize("name, mode", [("sdss", "time"), ("moons", "time"), ("desi", "energy")])
 def test_assembled_derivatives_equal_casadis_own(name: str, mode: str) -> None:
-    """The Jacobian and the Hessian of the Lagrangian IPOPT is given (the separation rows' written
-    out and summed into place) equal CasADi's differentiation of the whole NLP, at random points
-    and multipliers: capsules (SDSS), polygon zones with lateral offsets (MOONS' own model), the
-    energy mode (DESI)."""
+    """The Jacobian and the Hessian of the Lagrangian IPOPT is given (each line's kernel mapped
+    over the lines, its entries summed into place) equal CasADi's differentiation of the whole
+    NLP, at random points and multipliers: capsules (SDSS), polygon zones with lateral offsets
+    (MOONS' own model), the energy mode (DESI). The rows keep their keys' order (the warm starts
+    carry multipliers by key): separation rows by side, point, knot and line, then the norm rows."""
     import casadi as ca
 
-    from fiberplan.planners.central.nlp import _activate, _derivatives, _expressions, _make_problem
+    from fiberplan.planners.central.nlp import _KIND, _activate, _expressions, _make_problem
     from fiberplan.planners.central.solve import _straight_guess
     from fiberplan.studies.scenarios import hard_scenario
 
@@ -272,10 +273,13 @@ def test_assembled_derivatives_equal_casadis_own(name: str, mode: str) -> None:
     q, _ = _straight_guess(problem, 1.2)
     active = np.argwhere(_activate(problem, q, 0))
     ex = _expressions(problem, active)
-    assert len(active) > 20 and len(ex.g_parts) == 4
-    given = _derivatives(ex)
-    z, g = ex.z, ca.vertcat(*ex.g_parts)
-    lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", g.shape[0])
+    assert len(active) > 20 and len(np.unique(active[:, 2])) >= 1
+    kinds = ex.row_keys // _KIND
+    assert np.all(np.diff(kinds) >= 0) and set(kinds.tolist()) == {0, 1, 2}  # speed, separation, norm rows
+    assert np.all(np.diff(ex.row_keys[kinds == 2]) != 0)
+    given = ex.functions
+    z, g = ex.z, ex.g
+    lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", g.shape[0])
     own_hess = ca.Function("h", [z, lam_f, lam_g], [ca.triu(ca.hessian(lam_f * ex.objective + ca.dot(lam_g, g), z)[0])])
     own_jac = ca.Function("j", [z], [g, ca.jacobian(g, z)])
     rng = np.random.default_rng(1)
@@ -291,6 +295,35 @@ def test_assembled_derivatives_equal_casadis_own(name: str, mode: str) -> None:
         _, grad_given = given["grad_f"](x, [])
         grad_own = ca.Function("gf", [z], [ca.gradient(ex.objective, z)])(x)
         np.testing.assert_allclose(np.array(grad_given).ravel(), np.array(grad_own).ravel(), rtol=1e-13)
+        # The separation rows themselves, from their keys, by the numpy kinematics.
+        np.testing.assert_allclose(np.array(g_given).ravel()[kinds == 1], _separation_rows(problem, active, ex.row_keys[kinds == 1], x),
+                                   rtol=1e-12, atol=1e-12)
+
+
+def _separation_rows(problem, active: np.ndarray, keys: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Each separation row ``s (n . (x_p - m) - c) - r_p - m rho / 2 - rho (c_a da^2 + c_b db^2)``
+    of the central NLP from its key (line, side, point, knot), with numpy."""
+    from fiberplan.planners.central.nlp import _KIND, _end_relief, _line_codes, _point_positions
+
+    sc, pts = problem.scenario, problem.points
+    n_q = (problem.steps + 1) * problem.n * 2
+    q = x[:n_q].reshape(problem.steps + 1, problem.n, 2)
+    code, rest = np.divmod(keys - _KIND, 2 * len(pts.arm) * 2)
+    side, rest = np.divmod(rest, len(pts.arm) * 2)
+    point, dk = np.divmod(rest, 2)
+    line = np.searchsorted(_line_codes(problem, active), code)
+    assert np.all(_line_codes(problem, active)[line] == code)
+    k, pair = active[line, 0], active[line, 1]
+    pos = sc.pairs[pair, side]
+    xy = _point_positions(sc.instrument, pts, sc.base_xy, sc.orient, q)[k + dk, pos, point]
+    mid = 0.5 * (sc.base_xy[sc.pairs[pair, 0]] + sc.base_xy[sc.pairs[pair, 1]])
+    nx, ny, c = (x[n_q + 1 + 3 * line + t] for t in range(3))
+    sign = np.where(side == 0, 1.0, -1.0)
+    relief = _end_relief(problem, active)[line]
+    d = q[k + 1, pos] - q[k, pos]
+    chord = relief * (pts.chord_alpha[point] * d[:, 0] ** 2 + pts.chord_beta[point] * d[:, 1] ** 2)
+    const = pts.radius[point] + 0.5 * problem.settings.margin_mm * relief
+    return sign * (nx * (xy[:, 0] - mid[:, 0]) + ny * (xy[:, 1] - mid[:, 1]) - c) - const - chord
 
 
 def test_lazy_rounds_start_warm_from_the_last_round(crossing: Scenario, monkeypatch: pytest.MonkeyPatch) -> None:

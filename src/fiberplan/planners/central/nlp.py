@@ -239,6 +239,7 @@ class _Problem:
     points: _Points
     combos: np.ndarray  # (B, 2) body indices of i and j (``bodies.combos``)
     end_clearance: np.ndarray  # (2, P, B) clearances at the (fixed) start and target
+    cache: dict[Any, Any] = field(default_factory=dict)  # the NLPs' line-free part and line kernels (:func:`_base`, :func:`_kernel`)
 
     @property
     def n(self) -> int:
@@ -282,17 +283,16 @@ def _make_problem(scenario: Scenario, settings: CentralSettings) -> _Problem:
 
 @dataclass(frozen=True)
 class _Expressions:
-    """The NLP of one set of active lines, symbolic: the variables ``z`` (knots, ``tau``, three
-    per line), the objective, the constraint blocks ``g_parts`` with their bounds, and the
-    entries of the constraints' Jacobian and of the Lagrangian's Hessian (:func:`_derivatives`)."""
+    """The NLP of one set of active lines, symbolic (CasADi MX): the variables ``z`` (knots,
+    ``tau``, three per line), the objective, the constraints ``g`` with their bounds, IPOPT's
+    derivative functions (:func:`_expressions`), and a key per row and variable."""
 
     z: Any
     objective: Any
-    g_parts: list[Any]
-    lbg: list[np.ndarray]
-    ubg: list[np.ndarray]
-    jac: _Derivative
-    hess: _Derivative
+    g: Any
+    lbg: np.ndarray
+    ubg: np.ndarray
+    functions: dict[str, Any]  # grad_f, jac_g, hess_lag
     row_keys: np.ndarray  # (n_g,) what each row of g is, the same key in every NLP of a scenario (:func:`_line_codes`)
     var_keys: np.ndarray  # (n_z,) what each variable is, likewise
 
@@ -305,68 +305,60 @@ def _line_codes(problem: _Problem, active: np.ndarray) -> np.ndarray:
 _KIND = 1 << 56  # keys of rows and variables: kind * _KIND + code (speed rows and knots 0, separation 1, norm 2)
 
 
-def _expressions(problem: _Problem, active: np.ndarray) -> _Expressions:
-    r"""The NLP's expressions for the ``active`` lines (``(L, 3)`` rows ``k, pair, body pair``),
-    with their derivatives written out.
+@dataclass(frozen=True)
+class _Base:
+    r"""The part of every NLP of a problem that does not depend on the lines, as CasADi
+    functions of ``y = (q, tau)``, built once per problem: the objective and its gradient, the
+    speed rows (their Jacobian is constant: ``jac_rows``, ``jac_cols``, ``jac_values``) and the
+    objective's Hessian entries (``hess(y)`` at ``hess_rows``, ``hess_cols``).
 
     With ``S = \sum_m \Delta q_m^2`` over every joint and interval, ``h = \tau t_{LB} / T``, the
     objective is ``\tau + C S / \tau`` (time mode; energy mode: ``C S / \tau`` at a fixed
     ``\tau``), ``C = w_E T / (t_{LB} E_{ref})`` (energy mode: ``w_E`` = 1). Its Hessian:
     ``2 C / \tau`` times the chain's Laplacian in the knots (2 on the diagonal, 1 at the two ends,
     -1 between consecutive knots of a joint), ``-(C / \tau^2) dS/dq`` between ``q`` and ``\tau``,
-    ``2 C S / \tau^3`` on ``\tau``. The speed rows ``\Delta q \mp \omega h`` are linear; a
-    line's norm row ``n_x^2 + n_y^2`` has ``2 n_x``, ``2 n_y`` and ``2`` on its diagonal.
+    ``2 C S / \tau^3`` on ``\tau``. The speed rows ``\Delta q \mp \omega h`` are linear.
     """
+
+    f_grad: Any
+    g: Any
+    hess: Any
+    jac_rows: np.ndarray
+    jac_cols: np.ndarray
+    jac_values: np.ndarray
+    hess_rows: np.ndarray
+    hess_cols: np.ndarray
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.g.size1_out(0))
+
+
+def _base(problem: _Problem) -> _Base:
     import casadi as ca
 
-    st = problem.settings
-    inst = problem.scenario.instrument
+    if "base" in problem.cache:
+        return problem.cache["base"]
+    st, inst = problem.settings, problem.scenario.instrument
     T, n = problem.steps, problem.n
     n_q = (T + 1) * n * 2
-    n_lines = len(active)
-    z = ca.SX.sym("z", n_q + 1 + 3 * n_lines)
-    q = z[:n_q]
-    tau = z[n_q]
-    lines = z[n_q + 1 :]
+    y = ca.SX.sym("y", n_q + 1)
+    q, tau = y[:n_q], y[n_q]
     lb = problem.lower_bound_s
     h = tau * (lb / T)
-    jac, hess = _Derivative(), _Derivative()
-
-    kin = _point_kinematics(problem, q)
-
-    # Speed bounds and energy: dq over every interval.
     m = T * n * 2
     cur = np.arange(m)
     nxt = cur + n * 2
     dq = q[nxt] - q[cur]
     omega = np.tile(inst.speeds_rad_s, T * n)
-    g_parts = [dq - ca.DM(omega) * h, dq + ca.DM(omega) * h]
-    lbg = [np.full(m, -np.inf), np.zeros(m)]
-    ubg = [np.zeros(m), np.full(m, np.inf)]
+    g_speed = ca.vertcat(dq - ca.DM(omega) * h, dq + ca.DM(omega) * h)
+    jac_rows, jac_cols, jac_values = [], [], []
     for block, sign in ((0, -1.0), (1, 1.0)):
         rows = block * m + cur
-        jac.add(ca.DM.ones(m), rows, nxt)
-        jac.add(-ca.DM.ones(m), rows, cur)
-        jac.add(ca.DM(sign * omega * (lb / T)), rows, np.full(m, n_q))
+        jac_rows += [rows, rows, rows]
+        jac_cols += [nxt, cur, np.full(m, n_q)]
+        jac_values += [np.ones(m), -np.ones(m), sign * omega * (lb / T)]
     energy = ca.sumsqr(dq) / h
-
-    codes = _line_codes(problem, active)
-    row_keys = [np.arange(2 * m)]
-    var_keys = [np.arange(n_q + 1), _KIND + (3 * codes[:, None] + np.arange(3)).ravel()]
-    if n_lines:
-        g_sep, sep_keys = _separation(problem, active, q, lines, kin, 2 * m, jac, hess)
-        row_keys += [_KIND + sep_keys, 2 * _KIND + codes]
-        norm_row = 2 * m + g_sep.shape[0] + np.arange(n_lines)
-        nx, ny = lines[0::3], lines[1::3]
-        g_parts += [g_sep, nx**2 + ny**2]
-        lbg += [np.zeros(g_sep.shape[0]), np.full(n_lines, -np.inf)]
-        ubg += [np.full(g_sep.shape[0], np.inf), np.ones(n_lines)]
-        first = n_q + 1 + 3 * np.arange(n_lines)
-        jac.add(2 * nx, norm_row, first)
-        jac.add(2 * ny, norm_row, first + 1)
-        for var in (first, first + 1):
-            hess.add(ca.DM(np.full(n_lines, 2.0)), var, var, norm_row)
-
     e_ref = problem.energy_ref if problem.energy_ref > 0 else 1.0
     if problem.tau_fixed is None:
         objective = tau + st.energy_weight * energy / e_ref
@@ -376,12 +368,226 @@ def _expressions(problem: _Problem, active: np.ndarray) -> _Expressions:
         c = T / (lb * e_ref)
     ends = np.zeros((T + 1, n * 2))
     ends[[0, -1]] = 1.0  # the first and last knots are in one interval, the others in two
-    hess.add((2 * c / tau) * ca.DM(2.0 - ends.ravel()), np.arange(n_q), np.arange(n_q))
-    hess.add(ca.DM.ones(m) * (-2 * c / tau), cur, nxt)
     zeros = ca.SX.zeros(n * 2)
-    hess.add((-2 * c / tau**2) * (ca.vertcat(zeros, dq) - ca.vertcat(dq, zeros)), np.arange(n_q), np.full(n_q, n_q))
-    hess.add(2 * c * ca.sumsqr(dq) / tau**3, [n_q], [n_q])
-    return _Expressions(z, objective, g_parts, lbg, ubg, jac, hess, np.concatenate(row_keys), np.concatenate(var_keys))
+    hess_values = ca.vertcat(
+        (2 * c / tau) * ca.DM(2.0 - ends.ravel()),
+        ca.DM.ones(m) * (-2 * c / tau),
+        (-2 * c / tau**2) * (ca.vertcat(zeros, dq) - ca.vertcat(dq, zeros)),
+        2 * c * ca.sumsqr(dq) / tau**3,
+    )
+    base = _Base(
+        f_grad=ca.Function("base_f", [y], [objective, ca.gradient(objective, y)]),
+        g=ca.Function("base_g", [y], [g_speed]),
+        hess=ca.Function("base_h", [y], [hess_values]),
+        jac_rows=np.concatenate(jac_rows), jac_cols=np.concatenate(jac_cols), jac_values=np.concatenate(jac_values),
+        hess_rows=np.concatenate([np.arange(n_q), cur, np.arange(n_q), [n_q]]),
+        hess_cols=np.concatenate([np.arange(n_q), nxt, np.full(n_q, n_q), [n_q]]),
+    )
+    problem.cache["base"] = base
+    return base
+
+
+@dataclass(frozen=True)
+class _Kernel:
+    """The rows of one line of one body pair, and their derivatives, as CasADi functions of the
+    line's 11 variables ``v`` (:data:`_LINE_VARS`) and 9 constants ``p`` (the pair's mid-base,
+    each positioner's base and orientation, the line's end relief): built once per body pair and
+    mapped over the lines of an NLP (:func:`_expressions`).
+
+    ``rows`` rows per line: the separation rows (``side``, ``point``, ``dk`` each) then the norm
+    row; ``g(v, p)`` gives the rows, ``g_jac(v, p)`` the rows and the nonzeros of their Jacobian
+    in ``v`` (at ``jac_rows``, ``jac_cols``), ``hess(v, p, lam)`` the nonzeros of the upper
+    triangle of the Hessian of ``lam' g`` in ``v`` (at ``hess_a <= hess_b``).
+    """
+
+    rows: int
+    side: np.ndarray
+    point: np.ndarray
+    dk: np.ndarray
+    g: Any
+    g_jac: Any
+    hess: Any
+    jac_rows: np.ndarray
+    jac_cols: np.ndarray
+    hess_a: np.ndarray
+    hess_b: np.ndarray
+
+
+_LINE_VARS = 11
+"""A line's variables, in this order: alpha, beta of ``i`` at knots ``k`` and ``k + 1``, the same of ``j``, then ``n_x, n_y, c``."""
+
+
+def _kernel(problem: _Problem, combo: int) -> _Kernel:
+    r"""The separating-line rows of body pair ``combo`` for one line (each capsule end point of
+    both sides at both knots of the interval, on its side of the line by its radius, half the
+    margin and the chord allowance), its norm row, and their derivatives: CasADi's own
+    differentiation of these few rows in the line's 11 variables, common subexpressions merged.
+
+    Separation row: ``g = s (n_x (x_p - m_x) + n_y (y_p - m_y) - c) - r_p - m \rho / 2 - \rho (c_a
+    (\alpha_1 - \alpha_0)^2 + c_b (\beta_1 - \beta_0)^2)`` with ``x_p`` the point at its knot,
+    ``s`` = +1 on ``i``'s side and -1 on ``j``'s, ``\rho`` the line's end relief
+    (:func:`_end_relief`); norm row: ``n_x^2 + n_y^2``.
+    """
+    import casadi as ca
+
+    key = ("kernel", combo)
+    if key in problem.cache:
+        return problem.cache[key]
+    inst, st, pts = problem.scenario.instrument, problem.settings, problem.points
+    v = ca.SX.sym("v", _LINE_VARS)
+    p = ca.SX.sym("p", 9)
+    nx, ny, cc = v[8], v[9], v[10]
+    mid_x, mid_y, relief = p[0], p[1], p[8]
+    rows, side_of, point_of, dk_of = [], [], [], []
+    for side in (0, 1):
+        body = problem.combos[combo, side]
+        a0, b0, a1, b1 = (v[4 * side + t] for t in range(4))
+        bx, by, orient = p[2 + 3 * side], p[3 + 3 * side], p[4 + 3 * side]
+        sign = 1.0 if side == 0 else -1.0
+        trig = []  # cos, sin of alpha + orient and of alpha + orient + beta at both knots, once each
+        for al, be in ((a0, b0), (a1, b1)):
+            a = al + orient
+            trig.append((ca.cos(a), ca.sin(a), ca.cos(a + be), ca.sin(a + be)))
+        for pt in np.flatnonzero(pts.body == body):
+            x, y = pts.dist[pt], pts.lateral[pt]
+            chord = relief * (pts.chord_alpha[pt] * (a1 - a0) ** 2 + pts.chord_beta[pt] * (b1 - b0) ** 2)
+            const = pts.radius[pt] + 0.5 * st.margin_mm * relief
+            for dk, (c_a, s_a, c_ab, s_ab) in enumerate(trig):
+                if pts.arm[pt] == 1:
+                    px = bx + inst.alpha_arm_mm * c_a + x * c_ab - y * s_ab
+                    py = by + inst.alpha_arm_mm * s_a + x * s_ab + y * c_ab
+                else:
+                    px = bx + x * c_a - y * s_a
+                    py = by + x * s_a + y * c_a
+                rows.append(sign * (nx * (px - mid_x) + ny * (py - mid_y) - cc) - const - chord)
+                side_of.append(side)
+                point_of.append(pt)
+                dk_of.append(dk)
+    rows.append(nx**2 + ny**2)
+    g = ca.vertcat(*rows)
+    jac = ca.jacobian(g, v)
+    lam = ca.SX.sym("lam", g.shape[0])
+    hess = ca.triu(ca.hessian(ca.dot(lam, g), v)[0])
+    jac_rows, jac_cols = jac.sparsity().get_triplet()
+    hess_a, hess_b = hess.sparsity().get_triplet()
+    kernel = _Kernel(
+        rows=g.shape[0], side=np.array(side_of), point=np.array(point_of), dk=np.array(dk_of),
+        g=ca.Function("line_g", [v, p], [ca.cse(g)]),
+        g_jac=ca.Function("line_g_jac", [v, p], ca.cse([g, ca.vertcat(*jac.nonzeros())])),
+        hess=ca.Function("line_h", [v, p, lam], [ca.cse(ca.vertcat(*hess.nonzeros()))]),
+        jac_rows=np.array(jac_rows), jac_cols=np.array(jac_cols), hess_a=np.array(hess_a), hess_b=np.array(hess_b),
+    )
+    problem.cache[key] = kernel
+    return kernel
+
+
+def _expressions(problem: _Problem, active: np.ndarray) -> _Expressions:
+    """The NLP for the ``active`` lines (``(L, 3)`` rows ``k, pair, body pair``) and IPOPT's
+    derivative functions (``grad_f``, ``jac_g``, ``hess_lag``: the Hessian of ``lam_f f +
+    lam_g' g``, upper triangle).
+
+    Nothing is differentiated or expanded per NLP: the lines of each body pair are one call of
+    its kernel (:func:`_kernel`, built once per problem) mapped over them, on their variables
+    gathered from ``z``, and the line-free part is :func:`_base`'s; each derivative's nonzeros
+    are summed into place by one constant sparse product (a line's variables are distinct, and
+    different lines' entries meet on the joints). An NLP of a lazy round is therefore a few
+    index arrays and graph nodes, not a new expression graph (SDSS 7: 0.1 s against 0.5-0.9 s
+    when its rows and derivatives were written out as expressions). Rows: the speed rows, the
+    separation rows by side, point, knot and line, then the norm rows by line (the order of the
+    keys, :data:`_KIND`).
+    """
+    import casadi as ca
+
+    sc = problem.scenario
+    T, n = problem.steps, problem.n
+    n_q = (T + 1) * n * 2
+    n_lines = len(active)
+    n_z = n_q + 1 + 3 * n_lines
+    base = _base(problem)
+    z = ca.MX.sym("z", n_z)
+    y = z[: n_q + 1]
+    k_l, p_l, c_l = active[:, 0], active[:, 1], active[:, 2]
+    i_l, j_l = sc.pairs[p_l, 0], sc.pairs[p_l, 1]
+    codes = _line_codes(problem, active)
+    relief = _end_relief(problem, active)
+    n_points = len(problem.points.arm)
+
+    # Each line's variables in z (_LINE_VARS order) and constants.
+    def knot(k: np.ndarray, i: np.ndarray) -> np.ndarray:
+        return (k * n + i) * 2
+
+    var = np.stack([knot(k_l, i_l), knot(k_l, i_l) + 1, knot(k_l + 1, i_l), knot(k_l + 1, i_l) + 1,
+                    knot(k_l, j_l), knot(k_l, j_l) + 1, knot(k_l + 1, j_l), knot(k_l + 1, j_l) + 1,
+                    *(n_q + 1 + 3 * np.arange(n_lines) + t for t in range(3))])  # (11, L)
+    mid = 0.5 * (sc.base_xy[i_l] + sc.base_xy[j_l])
+    const = np.stack([mid[:, 0], mid[:, 1], sc.base_xy[i_l, 0], sc.base_xy[i_l, 1], sc.orient[i_l],
+                      sc.base_xy[j_l, 0], sc.base_xy[j_l, 1], sc.orient[j_l], relief])  # (9, L)
+
+    # Line by line ("lm" order): each body pair's lines are one mapped call of its kernel.
+    g_lm, g_jac_lm, jnz_lm, jac_r, jac_c, hess_a, hess_b = [], [], [], [], [], [], []
+    side, point, dk, line_of, kind = [], [], [], [], []
+    groups = []
+    first = 0
+    for combo in np.unique(c_l):
+        lines = np.flatnonzero(c_l == combo)
+        kern = _kernel(problem, int(combo))
+        count = len(lines)
+        v_c = ca.reshape(z[var[:, lines].ravel(order="F").tolist()], _LINE_VARS, count)
+        p_c = ca.DM(const[:, lines])
+        args = (v_c, p_c)
+        g_lm.append(ca.vec(kern.g.map(count)(*args)))
+        g_c, jnz_c = kern.g_jac.map(count)(*args)
+        g_jac_lm.append(ca.vec(g_c))
+        jnz_lm.append(ca.vec(jnz_c))
+        jac_r.append((first + np.arange(count)[None, :] * kern.rows + kern.jac_rows[:, None]).ravel(order="F"))
+        jac_c.append(var[:, lines][kern.jac_cols].ravel(order="F"))
+        a_glob, b_glob = var[:, lines][kern.hess_a], var[:, lines][kern.hess_b]
+        hess_a.append(np.minimum(a_glob, b_glob).ravel(order="F"))
+        hess_b.append(np.maximum(a_glob, b_glob).ravel(order="F"))
+        for out, local in ((side, kern.side), (point, kern.point), (dk, kern.dk)):
+            out.append(np.tile(np.append(local, 0), count))
+        line_of.append(np.repeat(lines, kern.rows))
+        kind.append(np.tile(np.append(np.ones(kern.rows - 1, np.int64), 2), count))
+        groups.append((kern, count, args, first))
+        first += kern.rows * count
+    side, point, dk, line_of, kind, jac_r, jac_c = (_cat(x) for x in (side, point, dk, line_of, kind, jac_r, jac_c))
+    # The rows in the order of every NLP before (and of the warm starts' keys): the separation
+    # rows by side, point, knot, then line; then the norm rows by line.
+    perm = np.lexsort((line_of, dk, point, side, kind))  # canonical row -> lm row
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(len(perm))
+    n_g = base.n_rows + len(perm)
+    codes_r = codes[line_of]
+    sep_keys = _KIND + ((codes_r * 2 + side) * n_points + point) * 2 + dk
+    row_keys = np.concatenate([np.arange(base.n_rows), np.where(kind == 1, sep_keys, 2 * _KIND + codes_r)[perm]])
+    half = base.n_rows // 2  # the speed rows: dq - omega h <= 0, then dq + omega h >= 0
+    lbg = np.concatenate([np.full(half, -np.inf), np.zeros(half), np.where(kind == 1, 0.0, -np.inf)[perm]])
+    ubg = np.concatenate([np.zeros(half), np.full(half, np.inf), np.where(kind == 1, np.inf, 1.0)[perm]])
+    reorder = perm.tolist()
+    g = ca.vertcat(base.g(y), ca.vertcat(*g_lm)[reorder]) if len(perm) else base.g(y)
+    g_of_jac = ca.vertcat(base.g(y), ca.vertcat(*g_jac_lm)[reorder]) if len(perm) else base.g(y)
+    jac = _scatter(ca.vertcat(ca.DM(base.jac_values), *jnz_lm), np.concatenate([base.jac_rows, base.n_rows + inv[jac_r]]),
+                   np.concatenate([base.jac_cols, jac_c]), (n_g, n_z))
+    lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", n_g)
+    hess_values = [lam_f * base.hess(y)]
+    for kern, count, args, start in groups:
+        lam_c = ca.reshape(lam_g[(base.n_rows + inv[start : start + kern.rows * count]).tolist()], kern.rows, count)
+        hess_values.append(ca.vec(kern.hess.map(count)(*args, lam_c)))
+    hess = _scatter(ca.vertcat(*hess_values), np.concatenate([base.hess_rows, *hess_a]), np.concatenate([base.hess_cols, *hess_b]),
+                    (n_z, n_z))
+    objective, grad = base.f_grad(y)
+    no_p = ca.MX.sym("p", 0)
+    functions = {
+        "grad_f": ca.Function("nlp_grad_f", [z, no_p], [objective, ca.vertcat(grad, ca.DM.zeros(3 * n_lines))]),
+        "jac_g": ca.Function("nlp_jac_g", [z, no_p], [g_of_jac, jac]),
+        "hess_lag": ca.Function("nlp_hess_l", [z, no_p, lam_f, lam_g], [hess]),
+    }
+    var_keys = np.concatenate([np.arange(n_q + 1), _KIND + (3 * codes[:, None] + np.arange(3)).ravel()])
+    return _Expressions(z, objective, g, lbg, ubg, functions, row_keys, var_keys)
+
+
+def _cat(parts: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
 
 
 def _solve_nlp(
@@ -439,9 +645,9 @@ def _solve_nlp(
             "bound_relax_factor": 0.0,
         },
     }
-    # The derivatives IPOPT needs, assembled here (:func:`_derivatives`).
-    opts |= _derivatives(ex)
-    nlp = {"x": ex.z, "f": ex.objective, "g": ca.vertcat(*ex.g_parts)}
+    # The derivatives IPOPT needs, assembled by :func:`_expressions`; only those.
+    opts |= ex.functions | {"no_nlp_grad": True, "calc_lam_p": False}
+    nlp = {"x": ex.z, "f": ex.objective, "g": ex.g}
     solvers: dict[bool, Any] = {}
 
     def solver_for(warm_start: bool) -> Any:
@@ -472,7 +678,7 @@ def _solve_nlp(
         solver = solver_for(warm_start)
         t0 = time.perf_counter()
         build_s += t0 - t_start
-        sol = solver(**start, lbx=lbx, ubx=ubx, lbg=np.concatenate(ex.lbg), ubg=np.concatenate(ex.ubg))
+        sol = solver(**start, lbx=lbx, ubx=ubx, lbg=ex.lbg, ubg=ex.ubg)
         solver_stats = solver.stats()
         x = np.array(sol["x"]).ravel()
         raw |= {
@@ -489,67 +695,6 @@ def _solve_nlp(
         if raw["status"] in _IPOPT_SUCCESS:
             break
     return raw, build_s
-
-
-def _point_kinematics(problem: _Problem, q: Any) -> dict[str, Any]:
-    r"""Every capsule end point at every knot, stacked ``(point, k, i)``: its position ``x``,
-    ``y`` and their derivatives in the positioner's joints (``x_a`` = dx/dalpha, ``y_ab`` =
-    d2y/dalpha dbeta, ...; zero in beta for a point on the alpha arm), for the separation rows
-    and their derivatives (:func:`_separation`).
-
-    With ``(u, w)`` the point's offset from its arm's joint (``d u(theta) + l u_perp(theta)``,
-    ``theta`` = ``alpha + orient`` (+ ``beta`` on the beta arm)), ``d/dtheta (u, w) = (-w, u)``;
-    on the beta arm the elbow ``l_1 u(alpha + orient)`` adds its own terms in alpha.
-    """
-    import casadi as ca
-
-    sc, inst, pts = problem.scenario, problem.scenario.instrument, problem.points
-    T = problem.steps
-    # Joint angles, flattened (k, i, joint): alpha at even, beta at odd positions.
-    alpha = q[0::2]
-    beta = q[1::2]
-    orient = ca.DM(np.tile(sc.orient, T + 1))
-    bx = ca.DM(np.tile(sc.base_xy[:, 0], T + 1))
-    by = ca.DM(np.tile(sc.base_xy[:, 1], T + 1))
-    a = alpha + orient
-    ab = a + beta
-    ca_, sa_ = ca.cos(a), ca.sin(a)
-    cab, sab = ca.cos(ab), ca.sin(ab)
-    lc, ls = inst.alpha_arm_mm * ca_, inst.alpha_arm_mm * sa_
-    ex, ey = bx + lc, by + ls
-    zero = ca.SX.zeros(alpha.shape[0])
-    keys = ("x", "y", "x_a", "y_a", "x_b", "y_b", "x_aa", "y_aa", "x_ab", "y_ab", "x_bb", "y_bb")
-    stacks: dict[str, list[Any]] = {key: [] for key in keys}
-    for p in range(len(pts.arm)):
-        x, y = pts.dist[p], pts.lateral[p]
-        if pts.arm[p] == 1:
-            u, w = x * cab - y * sab, x * sab + y * cab
-            parts = (ex + x * cab - y * sab, ey + x * sab + y * cab, -ls - w, lc + u, -w, u, -lc - u, -ls - w, -u, -w, -u, -w)
-        else:
-            u, w = x * ca_ - y * sa_, x * sa_ + y * ca_
-            parts = (bx + x * ca_ - y * sa_, by + x * sa_ + y * ca_, -w, u, zero, zero, -u, -w, zero, zero, zero, zero)
-        for key, part in zip(keys, parts, strict=True):
-            stacks[key].append(part)
-    return {key: ca.vertcat(*parts) for key, parts in stacks.items()}
-
-
-@dataclass
-class _Derivative:
-    """Sparse entries of a derivative as parallel lists: values (CasADi column vectors or
-    constants), rows and columns (index arrays); for the Hessian of the Lagrangian, ``rows`` and
-    ``cols`` are the two variables (each unordered pair once) and ``weights`` the multiplier of
-    each entry (its row of ``g``, or -1 for the objective's)."""
-
-    values: list[Any] = field(default_factory=list)
-    rows: list[np.ndarray] = field(default_factory=list)
-    cols: list[np.ndarray] = field(default_factory=list)
-    weights: list[np.ndarray] = field(default_factory=list)
-
-    def add(self, value: Any, row: np.ndarray, col: np.ndarray, weight: np.ndarray | None = None) -> None:
-        self.values.append(value)
-        self.rows.append(np.asarray(row, dtype=np.int64))
-        self.cols.append(np.asarray(col, dtype=np.int64))
-        self.weights.append(np.full(len(self.rows[-1]), -1, dtype=np.int64) if weight is None else np.asarray(weight, dtype=np.int64))
 
 
 _WARM_MAX_NEW = 0.1
@@ -579,142 +724,6 @@ def _carried(old_keys: np.ndarray, old_values: np.ndarray, new_keys: np.ndarray)
     return found, values
 
 
-def _separation(problem: _Problem, active: np.ndarray, q: Any, lines: Any, kin: dict[str, Any], first_row: int, jac: _Derivative,
-                hess: _Derivative) -> tuple[Any, np.ndarray]:
-    """The separating-line constraints of the ``active`` lines (each capsule end point of both
-    sides at both knots of the interval, on its side of the line by its radius, half the margin and
-    the chord allowance), rows ``first_row`` on of ``g``, and a key per row (its line, side,
-    point and knot); their derivatives are added to ``jac`` and ``hess``.
-
-    Row ``r``: ``g = s (n_x (x_p - m_x) + n_y (y_p - m_y) - c) - const - c_a (alpha_1 - alpha_0)^2
-    - c_b (beta_1 - beta_0)^2`` with ``x_p`` the point at its knot (joints ``alpha_p, beta_p``, one
-    of the interval's two knots). Its nonzero first derivatives: ``s (x_p - m_x)``, ``s (y_p -
-    m_y)``, ``-s`` in the line's variables, ``s (n_x x_a + n_y y_a)`` (and in beta) in the
-    point's joints, ``+-2 c_a (alpha_1 - alpha_0)`` (and beta) in the interval's; second:
-    ``s x_a`` for (n_x, alpha_p) and the like, ``s (n_x x_aa + n_y y_aa)`` for (alpha_p, alpha_p)
-    and the like, ``-+2 c_a`` for the interval's alphas (and betas).
-    """
-    import casadi as ca
-
-    sc, st, pts = problem.scenario, problem.settings, problem.points
-    n = problem.n
-    n_q = (problem.steps + 1) * n * 2
-    stride = (problem.steps + 1) * n  # points are stacked (point, k, i)
-    nx, ny, cc = lines[0::3], lines[1::3], lines[2::3]
-    k_l, p_l, c_l = active[:, 0], active[:, 1], active[:, 2]
-    i_l, j_l = sc.pairs[p_l, 0], sc.pairs[p_l, 1]
-    mid = 0.5 * (sc.base_xy[i_l] + sc.base_xy[j_l])
-    rows_line, rows_point, rows_sign, rows_move = [], [], [], []
-    for side, (pos, cap_col) in enumerate(((i_l, 0), (j_l, 1))):
-        cap = problem.combos[c_l, cap_col]
-        for p in range(len(pts.arm)):
-            use = pts.body[p] == cap
-            if not np.any(use):
-                continue
-            lidx = np.flatnonzero(use)
-            for dk in (0, 1):
-                rows_line.append(lidx)
-                rows_point.append(p * stride + (k_l[lidx] + dk) * n + pos[lidx])
-                rows_sign.append(np.full(len(lidx), 1.0 if side == 0 else -1.0))
-                rows_move.append((k_l[lidx] * n + pos[lidx]) * 2)  # alpha of this positioner at knot k
-    r_line = np.concatenate(rows_line)
-    r_point = np.concatenate(rows_point)
-    r_sign = np.concatenate(rows_sign)
-    r_pid = r_point // stride
-    relief = _end_relief(problem, active)[r_line]
-    const = pts.radius[r_pid] + 0.5 * st.margin_mm * relief
-    r_move = np.concatenate(rows_move)
-    d_alpha = q[r_move + 2 * n] - q[r_move]
-    d_beta = q[r_move + 2 * n + 1] - q[r_move + 1]
-    c_a, c_b = ca.DM(pts.chord_alpha[r_pid] * relief), ca.DM(pts.chord_beta[r_pid] * relief)
-    chord = c_a * d_alpha**2 + c_b * d_beta**2
-    at = r_point.tolist()
-    px, py = kin["x"][at], kin["y"][at]
-    nx_r, ny_r = nx[r_line.tolist()], ny[r_line.tolist()]
-    dx, dy = px - ca.DM(mid[r_line, 0]), py - ca.DM(mid[r_line, 1])
-    signed = nx_r * dx + ny_r * dy - cc[r_line.tolist()]
-    sign = ca.DM(r_sign)
-    g_sep = sign * signed - ca.DM(const) - chord
-
-    # The variables of each row in z, and its derivatives.
-    row = np.arange(len(r_line))
-    line_var = n_q + 1 + 3 * r_line
-    knot = r_point % stride  # (k + dk) * n + positioner: the point's joints are z[2 knot], z[2 knot + 1]
-    var = {"nx": line_var, "ny": line_var + 1, "c": line_var + 2, "ap": 2 * knot, "bp": 2 * knot + 1,
-           "a0": r_move, "b0": r_move + 1, "a1": r_move + 2 * n, "b1": r_move + 2 * n + 1}
-    on_beta = np.flatnonzero(pts.arm[r_pid] == 1)
-    d = {key: kin[key][at] for key in ("x_a", "y_a", "x_b", "y_b", "x_aa", "y_aa", "x_ab", "y_ab", "x_bb", "y_bb")}
-
-    def entry(value: Any, first: str | None, second: str, beta_only: bool = False) -> None:
-        """A Jacobian entry (``first`` None) or a Hessian entry of every row (of the rows whose
-        point is on the beta arm)."""
-        pick = on_beta if beta_only else row
-        value = value[pick.tolist()] if beta_only else value
-        if first is None:
-            jac.add(value, first_row + pick, var[second][pick])
-        else:
-            hess.add(value, var[first][pick], var[second][pick], first_row + pick)
-
-    entry(sign * dx, None, "nx")
-    entry(sign * dy, None, "ny")
-    entry(-sign, None, "c")
-    entry(sign * (nx_r * d["x_a"] + ny_r * d["y_a"]), None, "ap")
-    entry(sign * (nx_r * d["x_b"] + ny_r * d["y_b"]), None, "bp", beta_only=True)
-    entry(2 * c_a * d_alpha, None, "a0")
-    entry(-2 * c_a * d_alpha, None, "a1")
-    entry(2 * c_b * d_beta, None, "b0")
-    entry(-2 * c_b * d_beta, None, "b1")
-    entry(sign * d["x_a"], "nx", "ap")
-    entry(sign * d["y_a"], "ny", "ap")
-    entry(sign * d["x_b"], "nx", "bp", beta_only=True)
-    entry(sign * d["y_b"], "ny", "bp", beta_only=True)
-    entry(sign * (nx_r * d["x_aa"] + ny_r * d["y_aa"]), "ap", "ap")
-    entry(sign * (nx_r * d["x_ab"] + ny_r * d["y_ab"]), "ap", "bp", beta_only=True)
-    entry(sign * (nx_r * d["x_bb"] + ny_r * d["y_bb"]), "bp", "bp", beta_only=True)
-    entry(-2 * c_a, "a0", "a0")
-    entry(-2 * c_a, "a1", "a1")
-    entry(2 * c_a, "a0", "a1")
-    entry(-2 * c_b, "b0", "b0")
-    entry(-2 * c_b, "b1", "b1")
-    entry(2 * c_b, "b0", "b1")
-    dk = knot // n - k_l[r_line]
-    side = (r_sign < 0).astype(np.int64)
-    keys = ((_line_codes(problem, active)[r_line] * 2 + side) * len(pts.arm) + r_pid) * 2 + dk
-    return g_sep, keys
-
-
-def _derivatives(ex: _Expressions) -> dict[str, Any]:
-    """IPOPT's derivative functions (``grad_f``, ``jac_g``, ``hess_lag``: the Hessian of
-    ``lam_f f + lam_g' g``, upper triangle) of the NLP ``ex``, and the nlpsol options that use
-    them.
-
-    CasADi's own differentiation of the whole problem colours the Hessian (each line's variables
-    meet the joints of two positioners at two knots: over a hundred colours) and sweeps the whole
-    expression graph once per colour; with the Jacobian and a gradient of the Lagrangian for
-    multipliers fiberplan does not read (``no_nlp_grad``), that was most of the set-up of each NLP
-    (0.2-0.4 s on SDSS 7). Here the entries are written out (:func:`_expressions`,
-    :func:`_separation`) and summed into place by one sparse product each; only the objective's
-    gradient is CasADi's.
-    """
-    import casadi as ca
-
-    z, objective, g = ex.z, ex.objective, ca.vertcat(*ex.g_parts)
-    n_z, n_g = z.shape[0], g.shape[0]
-    lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", n_g)
-    jac = _scatter(ca.vertcat(*ex.jac.values), np.concatenate(ex.jac.rows), np.concatenate(ex.jac.cols), (n_g, n_z))
-    a, b = np.concatenate(ex.hess.rows), np.concatenate(ex.hess.cols)
-    weights = ca.vertcat(lam_f, lam_g)[(np.concatenate(ex.hess.weights) + 1).tolist()]
-    hess = _scatter(ca.vertcat(*ex.hess.values) * weights, np.minimum(a, b), np.maximum(a, b), (n_z, n_z))
-    no_p = ca.SX.sym("p", 0)
-    return {
-        "grad_f": ca.Function("nlp_grad_f", [z, no_p], [objective, ca.gradient(objective, z)]),
-        "jac_g": ca.Function("nlp_jac_g", [z, no_p], [g, jac]),
-        "hess_lag": ca.Function("nlp_hess_l", [z, no_p, lam_f, lam_g], [hess]),
-        "no_nlp_grad": True,
-        "calc_lam_p": False,
-    }
-
-
 def _scatter(values: Any, row: np.ndarray, col: np.ndarray, shape: tuple[int, int]) -> Any:
     """The sparse matrix of ``shape`` whose entry ``(row[e], col[e])`` is the sum of the
     ``values[e]`` that land on it (one constant sparse product)."""
@@ -723,7 +732,7 @@ def _scatter(values: Any, row: np.ndarray, col: np.ndarray, shape: tuple[int, in
     keys, slot = np.unique(col * shape[0] + row, return_inverse=True)  # CasADi's order: by column, then row
     gather = ca.DM(ca.Sparsity.triplet(len(keys), len(row), slot.tolist(), list(range(len(row)))), 1.0)
     pattern = ca.Sparsity.triplet(shape[0], shape[1], (keys % shape[0]).tolist(), (keys // shape[0]).tolist())
-    return ca.SX(pattern, ca.mtimes(gather, values))
+    return ca.MX(pattern, ca.mtimes(gather, values))
 
 
 def _end_relief(problem: _Problem, active: np.ndarray) -> np.ndarray:
