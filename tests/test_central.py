@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import pytest
@@ -273,10 +274,10 @@ def test_assembled_derivatives_equal_casadis_own(name: str, mode: str) -> None:
     q, _ = _straight_guess(problem, 1.2)
     active = np.argwhere(_activate(problem, q, 0))
     ex = _expressions(problem, active)
-    assert len(active) > 20 and len(np.unique(active[:, 2])) >= 1
+    assert len(active) > 20 and len(np.unique(active[:, 2])) > (5 if name == "moons" else 0)  # MOONS: many body pairs
     kinds = ex.row_keys // _KIND
     assert np.all(np.diff(kinds) >= 0) and set(kinds.tolist()) == {0, 1, 2}  # speed, separation, norm rows
-    assert np.all(np.diff(ex.row_keys[kinds == 2]) != 0)
+    assert np.all(np.diff(ex.row_keys[kinds == 2]) > 0)  # the norm rows line by line
     given = ex.functions
     z, g = ex.z, ex.g
     lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", g.shape[0])
@@ -300,7 +301,7 @@ def test_assembled_derivatives_equal_casadis_own(name: str, mode: str) -> None:
                                    rtol=1e-12, atol=1e-12)
 
 
-def _separation_rows(problem, active: np.ndarray, keys: np.ndarray, x: np.ndarray) -> np.ndarray:
+def _separation_rows(problem: Any, active: np.ndarray, keys: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Each separation row ``s (n . (x_p - m) - c) - r_p - m rho / 2 - rho (c_a da^2 + c_b db^2)``
     of the central NLP from its key (line, side, point, knot), with numpy."""
     from fiberplan.planners.central.nlp import _KIND, _end_relief, _line_codes, _point_positions
