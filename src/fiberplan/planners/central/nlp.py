@@ -491,7 +491,7 @@ def _expressions(problem: _Problem, active: np.ndarray) -> _Expressions:
     gathered from ``z``, and the line-free part is :func:`_base`'s; each derivative's nonzeros
     are summed into place by one constant sparse product (a line's variables are distinct, and
     different lines' entries meet on the joints). An NLP of a lazy round is therefore a few
-    index arrays and graph nodes, not a new expression graph (SDSS 7: 0.1 s against 0.5-0.9 s
+    index arrays and graph nodes, not a new expression graph (SDSS 7: 0.1-0.25 s against 0.5-0.9 s
     when its rows and derivatives were written out as expressions). Rows: the speed rows, the
     separation rows by side, point, knot and line, then the norm rows by line (the order of the
     keys, :data:`_KIND`).
