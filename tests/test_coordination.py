@@ -412,3 +412,50 @@ def test_a_leg_is_restarted_by_its_last_arrival_within_the_tolerance_not_by_its_
     far[-wait - 1:-1, 0, 1] += 0.05
     with pytest.raises(RuntimeError, match="restart planned"):
         shorten_leg(leg, far, lambda *a, **kw: (_ for _ in ()).throw(RuntimeError("restart planned")), dt)
+
+
+@pytest.mark.parametrize("stalls", ["fold to the datum", "fold from the targets"])
+def test_two_legs_of_which_one_stalls_meet_where_it_stalled(monkeypatch, stalls):
+    """A leg left short through every round ends in a collision-free configuration with a few
+    positioners unfolded; the other leg is planned to that configuration instead of the datum,
+    and the two legs join there: every target reached, one verified trajectory."""
+    from fiberplan.planners.coordination import layer
+    from fiberplan.planners.coordination.settings import UNFOLD_REVERSED_LEG
+
+    sc = fp.make_scenario("moons-capsules", 19, "random", 2)
+    settings = fp.make_settings("mpc", sc, {"route": "via_datum"})
+    opts = layer._options(settings, sc)
+    real = layer.complete_leg
+    kind = "fold" if stalls == "fold to the datum" else UNFOLD_REVERSED_LEG
+    stalled = []
+
+    def one_leg_stalls(leg, *args, **kwargs):
+        done = real(leg, *args, **kwargs)
+        if leg.kind == kind and not stalled:  # cut where about half its positioners had arrived
+            k = int(np.argmax((~np.all(done.joints == leg.target[None], axis=2)).sum(axis=1) <= 9))
+            assert 0 < k < len(done.joints) - 1
+            stalled.append(done.joints[k])
+            return layer.Leg(done.joints[: k + 1], done.runs, False, k + 1, done.wall_s)
+        return done
+
+    monkeypatch.setattr(layer, "complete_leg", one_leg_stalls)
+    monkeypatch.setattr(layer, "both", lambda f, g: (f(), g()))  # both legs in this process (the patch is seen)
+
+    def plan_leg(leg, time_limit_s=None, use_fallback=False, progress=None):
+        return fp.plan(leg, "mpc", {"route": "direct", "time_limit_s": time_limit_s})
+
+    pieces = layer._via_datum(sc, plan_leg, opts)
+    assert pieces is not None and all("meet where one stalled" in p.name for p in pieces) and all(p.rescued for p in pieces)
+    meeting = stalled[0]
+    assert not np.all(meeting == np.array(sc.instrument.datum_rad)), "the cut leaves positioners away from the datum"
+    trajectory = layer._join(sc, pieces, opts.dt_s)
+    # Every positioner passes through the configuration where the stalled leg ended (the legs are
+    # overlapped: not all at one instant), exactly.
+    assert all((trajectory.joints[:, i] == meeting[i]).all(axis=1).any() for i in range(19))
+    np.testing.assert_array_equal(trajectory.joints[0], sc.start)
+    np.testing.assert_array_equal(trajectory.joints[-1], sc.target)
+    assert fp.verify(sc, trajectory).ok
+    # Without the meeting (no round left), a stalled leg leaves the two-leg plan incomplete, as before.
+    stalled.clear()
+    monkeypatch.setattr(layer, "MEET_ROUNDS", 0)
+    assert layer._via_datum(sc, plan_leg, opts) is None

@@ -15,7 +15,7 @@ from fiberplan.geometry import min_pair_clearance
 from fiberplan.metrics import arrival_times, reached_mask
 from fiberplan.outcomes import outcome_labels
 from fiberplan.planners.coordination.fork import CHILD_RUNS, RUN_LOG, both
-from fiberplan.planners.coordination.legs import PlanLeg, _park_candidates, complete_leg, leg_scenario
+from fiberplan.planners.coordination.legs import Leg, PlanLeg, _park_candidates, complete_leg, leg_scenario
 from fiberplan.planners.coordination.retime import overlap_legs, ramp_rests
 from fiberplan.planners.coordination.settings import REVERSE_LEG, UNFOLD_REVERSED_LEG
 from fiberplan.profiles import chatters
@@ -143,8 +143,9 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     """Two legs through the datum (``midway``: through the folded configuration half-way in
     alpha, :func:`_folded_midway`) for ``movers`` (default: every positioner that is not locked),
     the others holding where ``start`` has them: ``start -> safe``, then ``(target -> safe)``
-    reversed, overlapped where that is clear (:func:`overlap_legs`). ``None`` unless both legs
-    are complete."""
+    reversed, overlapped where that is clear (:func:`overlap_legs`). A leg left short is met
+    where it stalled by the other leg planned again (:func:`_meet`); ``None`` unless the two legs
+    then join."""
     start = scenario.start if start is None else start
     movers = ~scenario.locked if movers is None else movers
     home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)  # where each must end
@@ -158,8 +159,13 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
         lambda: complete_leg(fold, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo),
         lambda: complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo),
     )
+    met = ""
     if not (first.complete and second.complete):
-        return None
+        legs = _meet(scenario, plan_leg, opts, start, back_start, first, second)
+        if legs is None:
+            return None
+        first, second = legs
+        met = " (the legs meet where one stalled)"
     who = np.flatnonzero(movers).tolist()
     rescued = first.rescued or second.rescued
     unfold = _reversed(second.joints)
@@ -167,15 +173,65 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     if opts.overlap:
         joints, shift = overlap_legs(scenario, first.joints, unfold, opts.floor_mm, opts.coarse_steps, rest=opts.rest_steps)
         if shift > 0:
-            return [_Piece(f"{label}fold to the datum, then unfold from it (planned from the targets), overlapped by {shift} steps",
+            return [_Piece(f"{label}fold to the datum, then unfold from it (planned from the targets), overlapped by {shift} steps{met}",
                            joints, who, first.runs + second.runs, first.wall_s + second.wall_s, overlap_steps=shift,
                            first_samples=plain, rescued=rescued)]
     return [
-        _Piece(f"{label}fold to the datum", first.joints, who, first.runs, first.wall_s, first_samples=first.first_samples,
+        _Piece(f"{label}fold to the datum{met}", first.joints, who, first.runs, first.wall_s, first_samples=first.first_samples,
                rescued=rescued),
-        _Piece(f"{label}unfold from the datum (planned from the targets)", unfold, who, second.runs, second.wall_s,
+        _Piece(f"{label}unfold from the datum (planned from the targets){met}", unfold, who, second.runs, second.wall_s,
                first_samples=second.first_samples, rescued=rescued),
     ]
+
+
+MEET_ROUNDS = 3
+"""Legs planned again by :func:`_meet` (each a whole leg: attempts, solo moves, fallback rounds)."""
+
+
+def _meet(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.ndarray, back_start: np.ndarray,
+          first: Leg, second: Leg) -> tuple[Leg, Leg] | None:
+    """The two legs of :func:`_via_datum` when one of them stalls, joined where it stalled.
+
+    The legs need not meet at the datum: any configuration both reach will do, and one in which a
+    stalled leg ended is collision-free (with everyone else folded, the few short positioners
+    unfolded). So the other leg is planned again to that configuration (the second leg, from the
+    targets, when the first stalled; else the first, from the starts); if that one stalls in turn,
+    the first is planned to where it stalled, and so on, :data:`MEET_ROUNDS` legs at most. The
+    positioners a fold leaves short are those its datum blocks (an arm at its hard stop beside a
+    folded neighbour, two arms each in the other's way); the other leg then only has to bring them
+    to where they stand, among folded neighbours, not past each other. Returns the two legs, ending
+    and starting at one configuration (both ``rescued``: the layer then also weighs the fallback
+    planner's whole move and the direct plan), or ``None``."""
+    second_meets = not first.complete  # the leg that did not stall meets the one that did (both: the second meets the first)
+    for _ in range(MEET_ROUNDS):
+        if second_meets:
+            meeting = first.joints[-1]
+            leg = leg_scenario(scenario, back_start, meeting, UNFOLD_REVERSED_LEG)
+            second = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo)
+            if second.complete:
+                second = dataclasses.replace(second, joints=_exactly_at(second.joints, leg.target, meeting))
+                break
+        else:
+            meeting = second.joints[-1]
+            leg = leg_scenario(scenario, start, meeting, "fold")
+            first = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo)
+            if first.complete:
+                first = dataclasses.replace(first, joints=_exactly_at(first.joints, leg.target, meeting))
+                break
+        second_meets = not second_meets
+    else:
+        return None
+    return dataclasses.replace(first, rescued=True), dataclasses.replace(second, rescued=True)
+
+
+def _exactly_at(joints: np.ndarray, goal: np.ndarray, exact: np.ndarray) -> np.ndarray:
+    """A leg's samples with every positioner sitting on its goal set to ``exact``: the goal as the
+    leg read it (through the scenario format's degrees) may differ from the configuration it was
+    taken from in the last bit (1e-16 rad), and the two legs must meet at one configuration."""
+    if not np.allclose(goal, exact, rtol=0.0, atol=1e-12):
+        raise ValueError("a leg's goal is not the configuration it should meet")
+    on = np.all(joints == goal[None], axis=2)
+    return np.where(on[..., None], exact[None], joints)
 
 
 def _fix_up(scenario: Scenario, direct: _Piece, plan_leg: PlanLeg, opts: _Options, rounds: int = 3) -> list[_Piece] | None:
