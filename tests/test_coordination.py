@@ -459,3 +459,40 @@ def test_two_legs_of_which_one_stalls_meet_where_it_stalled(monkeypatch, stalls)
     stalled.clear()
     monkeypatch.setattr(layer, "MEET_ROUNDS", 0)
     assert layer._via_datum(sc, plan_leg, opts) is None
+
+
+def test_a_straggling_tail_is_planned_backwards_from_the_goal_and_played_in_reverse():
+    # MOONS 500 unfold seed 0: the fold from the targets brings 490 of 500 home by 13.7 s and the
+    # last at 57.35 s; from the datum out to where those 10 stood takes 17.75 s (prototype).
+    from fiberplan.kinematics import straight_path
+    from fiberplan.planners.coordination.legs import RESTART_ABOVE, tail_backwards
+
+    sc = fp.make_scenario("desi", 7, "random", 0)
+    leg = leg_scenario(sc, sc.start, sc.target, "fold")
+    dt = 0.01
+    step = leg.instrument.speeds_rad_s * dt
+    k = int(np.ceil(float(np.max(np.abs(leg.target - leg.start) / leg.instrument.speeds_rad_s)) / dt)) + 1
+    moves = straight_path(leg.start, leg.target, step, k).transpose(1, 0, 2)
+    mover = int(np.argmax(np.max(np.abs(leg.target - leg.start), axis=1)))
+    # The others move as planned; the slowest waits at its start for 2 bounds, then goes.
+    late = np.concatenate([np.repeat(leg.start[None, mover], 2 * k, axis=0), moves[:, mover]])
+    joints = np.concatenate([leg.start[None], np.concatenate([moves, np.repeat(moves[-1:], 2 * k, axis=0)])])
+    joints[1:, mover] = late
+    assert fp.verify(sc, fp.Trajectory(np.arange(len(joints)) * dt, joints)).ok
+    kinds = []
+
+    def plan_leg(part, time_limit_s=None, use_fallback=False, progress=None):
+        kinds.append(part.kind)
+        return fp.plan(part, "mpc", {"route": "direct", "time_limit_s": time_limit_s})
+
+    best, runs = tail_backwards(leg, joints, plan_leg, dt)
+    assert runs >= 1 and set(kinds) == {REVERSE_LEG}  # played backwards within a forward leg
+    assert len(best) < len(joints) - k  # the wait is gone
+    np.testing.assert_array_equal(best[0], leg.start)
+    np.testing.assert_array_equal(best[-1], leg.target)
+    assert fp.verify(sc, fp.Trajectory(np.arange(len(best)) * dt, best)).ok
+    # A leg within RESTART_ABOVE of its bound is kept as it is.
+    quick = np.concatenate([leg.start[None], moves])
+    assert (len(quick) - 1) * dt <= RESTART_ABOVE * k * dt
+    kept, runs = tail_backwards(leg, quick, lambda *a, **kw: pytest.fail("no tail expected"), dt)
+    assert runs == 0 and kept is quick

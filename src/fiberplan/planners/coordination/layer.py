@@ -15,7 +15,7 @@ from fiberplan.geometry import min_pair_clearance
 from fiberplan.metrics import arrival_times, reached_mask
 from fiberplan.outcomes import outcome_labels
 from fiberplan.planners.coordination.fork import CHILD_RUNS, RUN_LOG, both
-from fiberplan.planners.coordination.legs import Leg, PlanLeg, _park_candidates, complete_leg, leg_scenario
+from fiberplan.planners.coordination.legs import Leg, PlanLeg, _park_candidates, complete_leg, exactly_at, leg_scenario
 from fiberplan.planners.coordination.retime import overlap_legs, ramp_rests
 from fiberplan.planners.coordination.settings import REVERSE_LEG, UNFOLD_REVERSED_LEG
 from fiberplan.profiles import chatters
@@ -209,29 +209,19 @@ def _meet(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.ndarr
             leg = leg_scenario(scenario, back_start, meeting, UNFOLD_REVERSED_LEG)
             second = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo)
             if second.complete:
-                second = dataclasses.replace(second, joints=_exactly_at(second.joints, leg.target, meeting))
+                second = dataclasses.replace(second, joints=exactly_at(second.joints, leg.target, meeting))
                 break
         else:
             meeting = second.joints[-1]
             leg = leg_scenario(scenario, start, meeting, "fold")
             first = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo)
             if first.complete:
-                first = dataclasses.replace(first, joints=_exactly_at(first.joints, leg.target, meeting))
+                first = dataclasses.replace(first, joints=exactly_at(first.joints, leg.target, meeting))
                 break
         second_meets = not second_meets
     else:
         return None
     return dataclasses.replace(first, rescued=True), dataclasses.replace(second, rescued=True)
-
-
-def _exactly_at(joints: np.ndarray, goal: np.ndarray, exact: np.ndarray) -> np.ndarray:
-    """A leg's samples with every positioner sitting on its goal set to ``exact``: the goal as the
-    leg read it (through the scenario format's degrees) may differ from the configuration it was
-    taken from in the last bit (1e-16 rad), and the two legs must meet at one configuration."""
-    if not np.allclose(goal, exact, rtol=0.0, atol=1e-12):
-        raise ValueError("a leg's goal is not the configuration it should meet")
-    on = np.all(joints == goal[None], axis=2)
-    return np.where(on[..., None], exact[None], joints)
 
 
 def _fix_up(scenario: Scenario, direct: _Piece, plan_leg: PlanLeg, opts: _Options, rounds: int = 3) -> list[_Piece] | None:

@@ -14,6 +14,10 @@ REVERSED_LEGS = (REVERSE_LEG, UNFOLD_REVERSED_LEG)
 """Kinds of the leg scenarios planned backwards in time and played reversed (a planner that
 keeps motor limits applies them reversed there)."""
 
+TAIL_FORWARD = "tail-backwards"
+"""Kind of a reversed leg's tail planned backwards (``legs.tail_backwards``): reversed twice, it
+is played forwards."""
+
 
 @dataclass(frozen=True)
 class RouteSettings:
