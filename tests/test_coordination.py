@@ -496,3 +496,35 @@ def test_a_straggling_tail_is_planned_backwards_from_the_goal_and_played_in_reve
     assert (len(quick) - 1) * dt <= RESTART_ABOVE * k * dt
     kept, runs = tail_backwards(leg, quick, lambda *a, **kw: pytest.fail("no tail expected"), dt)
     assert runs == 0 and kept is quick
+
+
+def test_two_legs_are_overlapped_with_and_without_their_backward_tails_and_the_shortest_kept(monkeypatch):
+    """A backward tail shortens a leg but can change when its positioners leave the datum: MOONS
+    500 random seed 2, both legs shorter, the overlapped whole longer (3.40 -> 3.82 x the bound)."""
+    from fiberplan.planners.coordination import layer
+
+    sc = fp.make_scenario("moons-capsules", 7, "random", 0)
+    settings = fp.make_settings("mpc", sc, {"route": "via_datum"})
+    opts = layer._options(settings, sc)
+    datum = np.broadcast_to(np.array(sc.instrument.datum_rad), sc.start.shape)
+
+    def leg_of(a, b, k):
+        return np.concatenate([np.repeat(a[None], k, axis=0), np.repeat(b[None], 2, axis=0)])
+
+    fold_tailed, fold_plain = leg_of(sc.start, datum, 10), leg_of(sc.start, datum, 12)
+    back_tailed, back_plain = leg_of(sc.target, datum, 10), leg_of(sc.target, datum, 14)
+    legs_made = iter([layer.Leg(fold_tailed, 2, True, 13, untailed=fold_plain), layer.Leg(back_tailed, 2, True, 16, untailed=back_plain)])
+    monkeypatch.setattr(layer, "complete_leg", lambda *a, **kw: next(legs_made))
+    monkeypatch.setattr(layer, "both", lambda f, g: (f(), g()))
+    seen = []
+
+    def overlap(scenario, j1, j2, *args, **kwargs):  # the plain fold overlaps the tailed unfold by 8 samples, the rest by 1
+        seen.append((len(j1), len(j2)))
+        shift = 8 if (j1 is fold_plain and len(j2) == len(back_tailed)) else 1
+        return np.concatenate([j1[:-shift], j2]), shift
+
+    monkeypatch.setattr(layer, "overlap_legs", overlap)
+    pieces = layer._via_datum(sc, lambda *a, **kw: None, opts)
+    assert sorted(seen) == sorted([(12, 12), (12, 16), (14, 12), (14, 16)])  # every form of each leg tried
+    assert len(pieces) == 1 and pieces[0].overlap_steps == 8
+    assert len(pieces[0].joints) == len(fold_plain) + len(back_tailed) - 8

@@ -15,7 +15,7 @@ from fiberplan.geometry import min_pair_clearance
 from fiberplan.metrics import arrival_times, reached_mask
 from fiberplan.outcomes import outcome_labels
 from fiberplan.planners.coordination.fork import CHILD_RUNS, RUN_LOG, both
-from fiberplan.planners.coordination.legs import Leg, PlanLeg, _park_candidates, complete_leg, exactly_at, leg_scenario
+from fiberplan.planners.coordination.legs import Leg, PlanLeg, _park_candidates, complete_leg, leg_scenario
 from fiberplan.planners.coordination.retime import overlap_legs, ramp_rests
 from fiberplan.planners.coordination.settings import REVERSE_LEG, UNFOLD_REVERSED_LEG
 from fiberplan.profiles import chatters
@@ -168,20 +168,36 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
         met = " (the legs meet where one stalled)"
     who = np.flatnonzero(movers).tolist()
     rescued = first.rescued or second.rescued
-    unfold = _reversed(second.joints)
     plain = first.first_samples + second.first_samples - 1  # the two legs as first planned, one after the other
-    if opts.overlap:
-        joints, shift = overlap_legs(scenario, first.joints, unfold, opts.floor_mm, opts.coarse_steps, rest=opts.rest_steps)
-        if shift > 0:
-            return [_Piece(f"{label}fold to the datum, then unfold from it (planned from the targets), overlapped by {shift} steps{met}",
-                           joints, who, first.runs + second.runs, first.wall_s + second.wall_s, overlap_steps=shift,
-                           first_samples=plain, rescued=rescued)]
+    # A leg shortened by a backward tail may overlap the other less than before: each leg with and
+    # without its tail, the shortest whole kept (the tailed ones first, on a tie).
+    best: tuple[int, np.ndarray, np.ndarray, np.ndarray | None, int] | None = None
+    for fold_joints in _forms(first):
+        for back_joints in _forms(second):
+            unfold = _reversed(back_joints)
+            joints, shift = None, 0
+            if opts.overlap:
+                joints, shift = overlap_legs(scenario, fold_joints, unfold, opts.floor_mm, opts.coarse_steps, rest=opts.rest_steps)
+            length = len(joints) if shift > 0 else len(fold_joints) + len(unfold) - 1
+            if best is None or length < best[0]:
+                best = (length, fold_joints, unfold, joints if shift > 0 else None, shift)
+    assert best is not None
+    _, fold_joints, unfold, joints, shift = best
+    if joints is not None:
+        return [_Piece(f"{label}fold to the datum, then unfold from it (planned from the targets), overlapped by {shift} steps{met}",
+                       joints, who, first.runs + second.runs, first.wall_s + second.wall_s, overlap_steps=shift,
+                       first_samples=plain, rescued=rescued)]
     return [
-        _Piece(f"{label}fold to the datum{met}", first.joints, who, first.runs, first.wall_s, first_samples=first.first_samples,
+        _Piece(f"{label}fold to the datum{met}", fold_joints, who, first.runs, first.wall_s, first_samples=first.first_samples,
                rescued=rescued),
         _Piece(f"{label}unfold from the datum (planned from the targets){met}", unfold, who, second.runs, second.wall_s,
                first_samples=second.first_samples, rescued=rescued),
     ]
+
+
+def _forms(leg: Leg) -> list[np.ndarray]:
+    """A leg's joints, then (if a backward tail shortened it) the leg before."""
+    return [leg.joints] if leg.untailed is None else [leg.joints, leg.untailed]
 
 
 MEET_ROUNDS = 3
@@ -209,14 +225,14 @@ def _meet(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.ndarr
             leg = leg_scenario(scenario, back_start, meeting, UNFOLD_REVERSED_LEG)
             second = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo)
             if second.complete:
-                second = dataclasses.replace(second, joints=exactly_at(second.joints, leg.target, meeting))
+                second = second.ending_at(leg.target, meeting)
                 break
         else:
             meeting = second.joints[-1]
             leg = leg_scenario(scenario, start, meeting, "fold")
             first = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo)
             if first.complete:
-                first = dataclasses.replace(first, joints=exactly_at(first.joints, leg.target, meeting))
+                first = first.ending_at(leg.target, meeting)
                 break
         second_meets = not second_meets
     else:

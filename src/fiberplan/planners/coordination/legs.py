@@ -41,6 +41,13 @@ class Leg:
     first_samples: int
     wall_s: float = 0.0
     rescued: bool = False
+    untailed: np.ndarray | None = None  # the leg before a backward tail shortened it (None: no tail kept)
+
+    def ending_at(self, goal: np.ndarray, exact: np.ndarray) -> Leg:
+        """This leg (and its untailed form) with every positioner sitting on ``goal`` set to
+        ``exact`` (:func:`exactly_at`)."""
+        untailed = None if self.untailed is None else exactly_at(self.untailed, goal, exact)
+        return dataclasses.replace(self, joints=exactly_at(self.joints, goal, exact), untailed=untailed)
 
 
 PlanLeg = Callable[..., PlanResult]
@@ -150,10 +157,13 @@ def complete_leg(
     if complete and restarts and runs == 1:
         joints, more = shorten_leg(leg, joints, plan_leg, restarts)
         runs += more
+    untailed = None
     if complete and restarts:
+        before = joints
         joints, more = tail_backwards(leg, joints, plan_leg, restarts)
         runs += more
-    return Leg(joints, runs, complete, first, time.perf_counter() - t0, rescued=notes.get("rescued", False))
+        untailed = None if joints is before else before
+    return Leg(joints, runs, complete, first, time.perf_counter() - t0, rescued=notes.get("rescued", False), untailed=untailed)
 
 
 def shorten_leg(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: float, rounds: int = 2) -> tuple[np.ndarray, int]:
