@@ -528,3 +528,22 @@ def test_two_legs_are_overlapped_with_and_without_their_backward_tails_and_the_s
     assert sorted(seen) == sorted([(12, 12), (12, 16), (14, 12), (14, 16)])  # every form of each leg tried
     assert len(pieces) == 1 and pieces[0].overlap_steps == 8
     assert len(pieces[0].joints) == len(fold_plain) + len(back_tailed) - 8
+
+
+def test_route_tails_off_plans_no_backward_tail(monkeypatch):
+    from fiberplan.planners.coordination import layer, legs
+
+    sc = fp.make_scenario("desi", 7, "random", 0)
+    assert layer._options(fp.make_settings("mpc", sc, {"route_tails": False}), sc).tails is False
+    assert layer._options(fp.make_settings("dnf", sc), sc).tails is True  # on by default, for every planner under the layer
+    called = []
+    monkeypatch.setattr(legs, "tail_backwards", lambda leg, joints, *a: (called.append(1), (joints, 0))[1])
+    leg = leg_scenario(sc, sc.start, sc.target, "fold")
+
+    def plan_leg(part, time_limit_s=None, use_fallback=False, progress=None):
+        return fp.plan(part, "mpc", {"route": "direct", "time_limit_s": time_limit_s})
+
+    legs.complete_leg(leg, plan_leg, 2, restarts=0.05, tails=False)
+    assert not called
+    legs.complete_leg(leg, plan_leg, 2, restarts=0.05, tails=True)
+    assert called

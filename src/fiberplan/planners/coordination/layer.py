@@ -38,6 +38,7 @@ class _Options:
     coarse_steps: int  # stride of the search for the overlap
     dt_s: float  # the planner's control step
     rest_steps: int = 0  # steps a joint holds still before turning back where runs meet (the instrument's speed ramp; governed planners)
+    tails: bool = True  # route_tails
 
     @property
     def solo(self) -> tuple[float, float]:
@@ -77,7 +78,7 @@ def _reversed(joints: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------- strategies
 def _direct(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piece]:
     t0 = time.perf_counter()
-    leg = complete_leg(scenario, plan_leg, opts.attempts, strict=False, restarts=opts.restarts, solo=opts.solo)
+    leg = complete_leg(scenario, plan_leg, opts.attempts, strict=False, restarts=opts.restarts, solo=opts.solo, tails=opts.tails)
     return [_Piece("direct", leg.joints, np.flatnonzero(scenario.has_target).tolist(), leg.runs, time.perf_counter() - t0,
                    first_samples=leg.first_samples, rescued=leg.rescued)]
 
@@ -87,7 +88,7 @@ def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Pie
     the reversed plan brings every positioner exactly back to its start."""
     t0 = time.perf_counter()
     back = leg_scenario(scenario, scenario.target, scenario.start, REVERSE_LEG)
-    leg = complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo)
+    leg = complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails)
     if not leg.complete:
         return None
     return [_Piece("reverse (planned from the targets)", _reversed(leg.joints), np.flatnonzero(scenario.has_target).tolist(), leg.runs,
@@ -156,8 +157,8 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     back = leg_scenario(scenario, back_start, hold, UNFOLD_REVERSED_LEG)
     # The two legs are independent: the second is planned in a forked process meanwhile.
     first, second = both(
-        lambda: complete_leg(fold, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo),
-        lambda: complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo),
+        lambda: complete_leg(fold, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails),
+        lambda: complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails),
     )
     met = ""
     if not (first.complete and second.complete):
@@ -223,14 +224,14 @@ def _meet(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.ndarr
         if second_meets:
             meeting = first.joints[-1]
             leg = leg_scenario(scenario, back_start, meeting, UNFOLD_REVERSED_LEG)
-            second = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo)
+            second = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails)
             if second.complete:
                 second = second.ending_at(leg.target, meeting)
                 break
         else:
             meeting = second.joints[-1]
             leg = leg_scenario(scenario, start, meeting, "fold")
-            first = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo)
+            first = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails)
             if first.complete:
                 first = first.ending_at(leg.target, meeting)
                 break
@@ -291,7 +292,7 @@ def _options(settings: Any, scenario: Scenario) -> _Options:
     # governor): the others' plans turn back at every step where they wait, and are left to the discretiser.
     rest = 0 if ramp is None or not getattr(settings, "motor_limits", False) else math.ceil(ramp / settings.dt_s - 1e-9)
     return _Options(settings.route_attempts, settings.dt_s if settings.route_restarts else None, settings.route_overlap,
-                    float(getattr(settings, "safety_margin_mm", 0.0)), step, settings.dt_s, rest)
+                    float(getattr(settings, "safety_margin_mm", 0.0)), step, settings.dt_s, rest, settings.route_tails)
 
 
 def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Options,

@@ -136,7 +136,7 @@ def at_targets(scenario: Scenario, joints: np.ndarray) -> np.ndarray:
 
 def complete_leg(
     leg: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None = None, unblock: bool = True, strict: bool = True,
-    restarts: float | None = None, solo: tuple[float, float] | None = None,
+    restarts: float | None = None, solo: tuple[float, float] | None = None, tails: bool = False,
 ) -> Leg:
     """Plan ``leg``, then again from where each attempt stopped, until every positioner sits on
     its target, an attempt brings none closer, or ``time_limit_s`` of motion is used up. When an
@@ -146,7 +146,8 @@ def complete_leg(
     by restarts when ``restarts`` is given: the planner's sample period (s) (:func:`shorten_leg`).
     With ``solo = (floor_mm, dt_s)``, positioners the attempts leave short go home one at a time
     along their own grid paths while everyone else holds (:mod:`.solo`), before the fallback
-    planner and once more at the end."""
+    planner and once more at the end. With ``tails`` (and ``restarts``), a complete leg whose last
+    positioners straggle has its tail planned backwards (:func:`tail_backwards`)."""
     t0 = time.perf_counter()
     notes: dict[str, bool] = {}
     joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo, notes)
@@ -158,7 +159,7 @@ def complete_leg(
         joints, more = shorten_leg(leg, joints, plan_leg, restarts)
         runs += more
     untailed = None
-    if complete and restarts:
+    if complete and restarts and tails:
         before = joints
         joints, more = tail_backwards(leg, joints, plan_leg, restarts)
         runs += more

@@ -30,5 +30,7 @@ class RouteSettings:
                                   low=1, high=50, group="route")
     route_restarts: bool = setting(True, "a complete leg is planned again from where most of its positioners had arrived; the "
                                    "shortest is kept", group="route")
+    route_tails: bool = setting(True, "a complete leg whose last positioners straggle has its tail planned backwards, from its "
+                                "goal out to where they stood, and played in reverse; kept where shorter", group="route")
     route_overlap: bool = setting(True, "the leg from the datum starts while the last ones still fold, where every new pair "
                                   "keeps the safety margin", group="route")
