@@ -181,13 +181,7 @@ def shorten_leg(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: floa
     """
     runs = 0
     best = joints
-    bound_s = float(np.max(np.abs(leg.target - leg.start) / leg.instrument.speeds_rad_s, initial=0.0))
-    # The leg's makespan as the results count it (the last arrival within the tolerance), not its
-    # last sample (exactly on target, a step or two later): DESI 50,000 seed 0 arrives at 1.196 x
-    # the bound, its last sample at 1.2016 x, and four restarts (80 s) gained nothing.
-    arrive = arrival_times(leg, Trajectory(np.arange(len(joints)) * dt_s, joints))[leg.has_target]
-    makespan_s = float(arrive.max()) if len(arrive) and np.isfinite(arrive).all() else (len(joints) - 1) * dt_s
-    if makespan_s <= RESTART_ABOVE * bound_s:
+    if not _straggles(leg, joints, dt_s):
         return joints, 0
     tried_up_to = 0  # cuts before the last kept one were tried in an earlier round, from the same samples
     for _ in range(rounds):
@@ -238,10 +232,7 @@ def tail_backwards(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: f
     Measured on MOONS 500 unfold (``moons-capsules``), the fold from the targets: seed 0, cut with
     10 away at 13.7 s, the tail out from the datum takes 17.75 s in one run: 57.35 -> 31.45 s; on
     seeds 1-3 no backward tail completes (the stragglers stall on the way out too)."""
-    bound_s = float(np.max(np.abs(leg.target - leg.start) / leg.instrument.speeds_rad_s, initial=0.0))
-    arrive = arrival_times(leg, Trajectory(np.arange(len(joints)) * dt_s, joints))[leg.has_target]
-    makespan_s = float(arrive.max()) if len(arrive) and np.isfinite(arrive).all() else (len(joints) - 1) * dt_s
-    if makespan_s <= RESTART_ABOVE * bound_s:
+    if not _straggles(leg, joints, dt_s):
         return joints, 0
     away = ~np.all(joints == leg.target[None], axis=2)  # (K, N)
     movers = int(away[0].sum())
@@ -274,6 +265,17 @@ def exactly_at(joints: np.ndarray, goal: np.ndarray, exact: np.ndarray) -> np.nd
         raise ValueError("a leg's goal is not the configuration it should meet")
     on = np.all(joints == goal[None], axis=2)
     return np.where(on[..., None], exact[None], joints)
+
+
+def _straggles(leg: Scenario, joints: np.ndarray, dt_s: float) -> bool:
+    """Whether a complete leg's last arrival (within the tolerance, as the results count it, not
+    its last sample exactly on the targets) is later than :data:`RESTART_ABOVE` times its lower
+    bound. DESI 50,000 seed 0 arrives at 1.196 x the bound, its last sample at 1.2016 x: four
+    restarts counted by the last sample cost 80 s of planning and gained nothing."""
+    bound_s = float(np.max(np.abs(leg.target - leg.start) / leg.instrument.speeds_rad_s, initial=0.0))
+    arrive = arrival_times(leg, Trajectory(np.arange(len(joints)) * dt_s, joints))[leg.has_target]
+    makespan_s = float(arrive.max()) if len(arrive) and np.isfinite(arrive).all() else (len(joints) - 1) * dt_s
+    return makespan_s > RESTART_ABOVE * bound_s
 
 
 def _attempts(
