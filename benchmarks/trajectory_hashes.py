@@ -8,7 +8,8 @@ the SHA-256 of ``joints_rad`` (float64, C order) and of ``time_s``, with the run
     PYTHONPATH=<snapshot>/src python benchmarks/trajectory_hashes.py --out /tmp/after.json
     python benchmarks/trajectory_hashes.py --compare /tmp/before.json /tmp/after.json
 
-``--compare`` exits 1 and names every run whose trajectory differs.
+``--compare`` exits 1 and names every run whose trajectory differs. ``--sets`` plans other sets,
+e.g. ``--sets moons-capsules:61:random:0-4,sdss:547:random:0-1``.
 """
 
 from __future__ import annotations
@@ -57,6 +58,19 @@ def fingerprints(planner: str, sets=SETS, quick: bool = False) -> dict[str, dict
     return out
 
 
+def parse_sets(text: str) -> tuple[tuple[str, int, str, range], ...]:
+    """``instrument:n:kind:first-last`` (or one seed), comma-separated."""
+    sets = []
+    for item in text.split(","):
+        try:
+            instrument, n, kind, seeds = item.split(":")
+            lo, _, hi = seeds.partition("-")
+            sets.append((instrument, int(n), kind, range(int(lo), int(hi or lo) + 1)))
+        except ValueError:
+            raise SystemExit(f"--sets: {item!r} is not instrument:n:kind:first-last (e.g. sdss:547:random:0-1)") from None
+    return tuple(sets)
+
+
 def compare(before: Path, after: Path) -> int:
     """Print the runs whose trajectories differ; 0 when every run is identical."""
     a = json.loads(before.read_text())["runs"]
@@ -74,12 +88,13 @@ def main() -> None:
     parser.add_argument("--out", type=Path)
     parser.add_argument("--quick", action="store_true", help="first seed of each set only")
     parser.add_argument("--compare", nargs=2, type=Path, metavar=("BEFORE", "AFTER"))
+    parser.add_argument("--sets", type=parse_sets, default=SETS, help="instrument:n:kind:first-last, comma-separated (default: the house sets)")
     args = parser.parse_args()
     if args.compare:
         sys.exit(compare(*args.compare))
     import fiberplan
 
-    runs = fingerprints(args.planner, quick=args.quick)
+    runs = fingerprints(args.planner, sets=args.sets, quick=args.quick)
     payload = {"planner": args.planner, "fiberplan_module": str(Path(fiberplan.__file__).parent), "runs": runs}
     text = json.dumps(payload, indent=1)
     if args.out:

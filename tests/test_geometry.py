@@ -7,7 +7,16 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from fiberplan.geometry import capsule_segments, capsule_tables, combo_clearances, pair_clearance, segment_distance, segment_distance_only
+from fiberplan import geometry
+from fiberplan.geometry import (
+    capsule_segments,
+    capsule_tables,
+    combo_clearances,
+    pair_clearance,
+    segment_distance,
+    segment_distance_only,
+    smallest_clearance,
+)
 from fiberplan.instrument_io import load_instrument
 
 coord = st.floats(-10, 10, allow_nan=False, allow_infinity=False)
@@ -160,6 +169,12 @@ def test_combo_clearances_equal_segment_distance_bit_for_bit(name):
     grid = combo_clearances(inst, start_i[:3, None], end_i[:3, None], start_j[None], end_j[None])
     assert grid.shape == (3, n, len(combos))
     np.testing.assert_array_equal(grid[[0, 1, 2], [0, 1, 2]], expected[:3])
+    if not inst.polygons:  # the compiled search, reading the configurations by index
+        order = rng.permutation(n)
+        got = smallest_clearance(inst, start_i, end_i, order, start_j[::-1], end_j[::-1], (n - 1 - order))
+        np.testing.assert_array_equal(got, expected.min(axis=1)[order])
+        outer = smallest_clearance(inst, start_i, end_i, np.arange(3)[:, None], start_j, end_j, np.arange(n)[None, :])
+        np.testing.assert_array_equal(outer, grid.min(axis=2))
 
 
 def test_leading_time_axes_are_supported():
@@ -176,3 +191,83 @@ def test_tiny_segments_are_not_points():
     # found by hypothesis: a 1e-7 mm segment ending on a point is at distance 0 from it
     d, _, _ = segment_distance(np.zeros(2), np.zeros(2), np.array([0.0, 1.192092896e-07]), np.zeros(2))
     assert d == 0.0
+
+
+def test_the_compiled_search_refuses_zones_and_indices_outside_its_tables():
+    inst = INSTRUMENTS["sdss"]
+    start, end = capsule_segments(inst, np.zeros((2, 2)), np.zeros(2), np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="q_index outside"):
+        smallest_clearance(inst, start, end, np.array([0]), start, end, np.array([2]))
+    with pytest.raises(ValueError, match="p_index outside"):
+        smallest_clearance(inst, start, end, np.array([-1]), start, end, np.array([0]))
+    zoned = load_instrument("moons")
+    with pytest.raises(ValueError, match="capsule instruments"):
+        smallest_clearance(zoned, start, end, np.array([0]), start, end, np.array([0]))
+
+
+def _segment_distance_numpy(p0, p1, q0, q1):
+    """``segment_distance`` as numpy computed it before it was compiled: the reference its compiled
+    loop must equal bit for bit (every planner's constraint and the verifier read it)."""
+    with np.errstate(divide="ignore", invalid="ignore"):  # the awkward cases below divide by zero, as numpy did
+        return _numpy_reference(p0, p1, q0, q1)
+
+
+def _numpy_reference(p0, p1, q0, q1):
+    (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, a_safe, e_safe) = geometry._segment_parts(p0, p1, q0, q1)
+    dist, t = geometry.point_to_segment(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)
+    s = np.zeros_like(dist)
+    d_c, t_c = geometry.point_to_segment(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)
+    better = d_c < dist
+    dist, s, t = np.where(better, d_c, dist), np.where(better, 1.0, s), np.where(better, t_c, t)
+    d_c, s_c = geometry.point_to_segment(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)
+    better = d_c < dist
+    dist, s, t = np.where(better, d_c, dist), np.where(better, s_c, s), np.where(better, 0.0, t)
+    d_c, s_c = geometry.point_to_segment(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)
+    better = d_c < dist
+    dist, s, t = np.where(better, d_c, dist), np.where(better, s_c, s), np.where(better, 1.0, t)
+    crossing, rx, ry = geometry._crossing(p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y, d1x, d1y, d2x, d2y)
+    safe = np.where(crossing, d1x * d2y - d1y * d2x, 1.0)
+    s = np.where(crossing, (rx * d2y - ry * d2x) / safe, s)
+    t = np.where(crossing, (rx * d1y - ry * d1x) / safe, t)
+    dist = np.where(crossing, 0.0, dist)
+    return dist, s, t
+
+
+def _awkward_segments(rng, n):
+    """Random segments with the awkward cases mixed in: zero-length, parallel and collinear,
+    crossing, touching at an end, far apart, and a few NaN coordinates."""
+    p0, p1, q0, q1 = (rng.normal(0.0, 5.0, (n, 2)) for _ in range(4))
+    k = n // 8
+    p1[:k] = p0[:k]  # p a point
+    q1[k:2 * k] = q0[k:2 * k]  # q a point
+    q0[2 * k:3 * k] = p0[2 * k:3 * k] + 0.5 * (p1[2 * k:3 * k] - p0[2 * k:3 * k])  # q starts on p
+    q1[3 * k:4 * k] = q0[3 * k:4 * k] + 2.0 * (p1[3 * k:4 * k] - p0[3 * k:4 * k])  # parallel
+    q0[4 * k:5 * k] = p0[4 * k:5 * k] + 3.0 * (p1[4 * k:5 * k] - p0[4 * k:5 * k])  # collinear
+    q1[4 * k:5 * k] = p0[4 * k:5 * k] - 1.0 * (p1[4 * k:5 * k] - p0[4 * k:5 * k])
+    q0[5 * k:6 * k] *= 1e6  # far
+    p0[6 * k:6 * k + 5, 0] = np.nan
+    q1[6 * k + 5:6 * k + 10, 1] = np.nan
+    return p0, p1, q0, q1
+
+
+def test_segment_distance_compiled_equals_numpy_bit_for_bit():
+    rng = np.random.default_rng(11)
+    p0, p1, q0, q1 = _awkward_segments(rng, 40000)
+    got, want = segment_distance(p0, p1, q0, q1), _segment_distance_numpy(p0, p1, q0, q1)
+    assert (want[0] == 0.0).sum() > 1000 and np.isnan(want[0]).sum() >= 10  # crossings and NaN among the samples
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+    # Leading axes broadcast as numpy broadcasts them: one segment against many, stacked.
+    got = segment_distance(p0[:1, None], p1[:1, None], q0[None, :50].reshape(1, 50, 2), q1[None, :50])
+    want = _segment_distance_numpy(p0[:1, None], p1[:1, None], q0[None, :50], q1[None, :50])
+    for g, w in zip(got, want, strict=True):
+        assert g.shape == (1, 50)
+        np.testing.assert_array_equal(g, w)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.floats(-20, 20, allow_nan=False), min_size=8, max_size=8))
+def test_segment_distance_compiled_equals_numpy_on_any_segments(c):
+    p0, p1, q0, q1 = (np.array([c[2 * k:2 * k + 2]]) for k in range(4))
+    for g, w in zip(segment_distance(p0, p1, q0, q1), _segment_distance_numpy(p0, p1, q0, q1), strict=True):
+        np.testing.assert_array_equal(g, w)

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from fiberplan import capsule_kernels
 from fiberplan.instrument import Instrument
 from fiberplan.kinematics import straight_path
 
@@ -174,24 +175,12 @@ def segment_distance(
     Returns:
         ``(distance, s, t)``: closest points are ``p0 + s (p1 - p0)`` and ``q0 + t (q1 - q0)``.
     """
-    (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, a_safe, e_safe) = _segment_parts(p0, p1, q0, q1)
-    dist, t = point_to_segment(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)
-    s = np.zeros_like(dist)
-    d_c, t_c = point_to_segment(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)
-    better = d_c < dist
-    dist, s, t = np.where(better, d_c, dist), np.where(better, 1.0, s), np.where(better, t_c, t)
-    d_c, s_c = point_to_segment(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)
-    better = d_c < dist
-    dist, s, t = np.where(better, d_c, dist), np.where(better, s_c, s), np.where(better, 0.0, t)
-    d_c, s_c = point_to_segment(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)
-    better = d_c < dist
-    dist, s, t = np.where(better, d_c, dist), np.where(better, s_c, s), np.where(better, 1.0, t)
-    crossing, rx, ry = _crossing(p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y, d1x, d1y, d2x, d2y)
-    safe = np.where(crossing, d1x * d2y - d1y * d2x, 1.0)
-    s = np.where(crossing, (rx * d2y - ry * d2x) / safe, s)
-    t = np.where(crossing, (rx * d1y - ry * d1x) / safe, t)
-    dist = np.where(crossing, 0.0, dist)
-    return dist, s, t
+    p0, p1, q0, q1 = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (p0, p1, q0, q1)))
+    shape = p0.shape[:-1]
+    flat = [np.ascontiguousarray(a).reshape(-1, 2) for a in (p0, p1, q0, q1)]
+    dist, s, t = np.empty(len(flat[0])), np.empty(len(flat[0])), np.empty(len(flat[0]))
+    capsule_kernels.segment_distances(*flat, dist, s, t)  # one compiled loop, numpy's arithmetic (tested bit for bit)
+    return dist.reshape(shape), s.reshape(shape), t.reshape(shape)
 
 
 def segment_distance_only(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
@@ -290,6 +279,42 @@ def combo_clearances(
         if smallest and k:
             out = [np.minimum(out[0], out[1])]
     return out[0] if smallest else np.stack(out, axis=-1)
+
+
+def smallest_clearance(
+    instrument: Instrument, p_start: np.ndarray, p_end: np.ndarray, p_index: np.ndarray,
+    q_start: np.ndarray, q_end: np.ndarray, q_index: np.ndarray,
+) -> np.ndarray:
+    """Smallest clearance (mm) over the capsule combinations of configurations taken by index.
+
+    ``combo_clearances(instrument, p_start[p_index], p_end[p_index], q_start[q_index],
+    q_end[q_index], smallest=True)`` bit for bit, without the gathered copies.
+
+    Args:
+        instrument: a capsule instrument (no polygon zones).
+        p_start, p_end: ``(P, C, 2)`` capsule end points of ``P`` configurations of one side.
+        p_index: integer indices into the first axis of ``p_*``, any shape.
+        q_start, q_end: ``(Q, C, 2)`` the other side's.
+        q_index: indices into ``q_*``, broadcastable with ``p_index``.
+
+    Returns:
+        The clearances, shaped as ``p_index`` and ``q_index`` broadcast.
+
+    Raises:
+        ValueError: an instrument with polygon zones, or an index outside its table.
+    """
+    if instrument.polygons:
+        raise ValueError(f"{instrument.name}: smallest_clearance is for capsule instruments; use geometry.combo_clearances")
+    _, start_mm, end_mm, combos, radii = capsule_tables(instrument)
+    ip, iq = np.broadcast_arrays(np.asarray(p_index, dtype=np.int64), np.asarray(q_index, dtype=np.int64))
+    shape = ip.shape
+    ip, iq = ip.ravel(), iq.ravel()
+    for name, index, table in (("p_index", ip, p_start), ("q_index", iq, q_start)):
+        if index.size and (int(index.min()) < 0 or int(index.max()) >= len(table)):  # the compiled loop checks no bounds
+            raise ValueError(f"{name} outside [0, {len(table)})")
+    out = np.empty(ip.size)
+    capsule_kernels.smallest_combo(p_start, p_end, ip, q_start, q_end, iq, combos, start_mm == end_mm, radii, out)
+    return out.reshape(shape)
 
 
 @dataclass(frozen=True)

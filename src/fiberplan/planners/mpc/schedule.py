@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fiberplan.geometry import capsule_segments, capsule_tables, combo_clearances
+from fiberplan.geometry import capsule_segments, capsule_tables, combo_clearances, smallest_clearance
 from fiberplan.kinematics import straight_path
 from fiberplan.layout import neighbour_lists
 from fiberplan.planners.mpc.grid import JointGrid, dilate
@@ -280,6 +280,10 @@ class StartScheduler:
         """Clearance of ``i`` after ``ti`` steps of its move to ``j`` after ``tj`` (index arrays,
         broadcast); exact below ``exact_below`` (default: everywhere), a lower bound at least that above."""
         s, e = self.seg_start, self.seg_end
+        if not self.inst.polygons:  # compiled, reading the capsules in place: the same numbers
+            steps, c = s.shape[1], s.shape[2]
+            flat_s, flat_e = s.reshape(-1, c, 2), e.reshape(-1, c, 2)
+            return smallest_clearance(self.inst, flat_s, flat_e, np.asarray(i) * steps + ti, flat_s, flat_e, np.asarray(j) * steps + tj)
         return combo_clearances(self.inst, s[i, ti], e[i, ti], s[j, tj], e[j, tj], smallest=True, exact_below=exact_below)
 
     def _fits(self, i: int, delays: np.ndarray, js: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -405,8 +409,12 @@ class StartScheduler:
             close = np.flatnonzero(np.hypot(gap[:, 0], gap[:, 1]) - self.combo_radii.max() < self.floor[row])
             if len(close) == 0:
                 continue
-            ok = combo_clearances(self.inst, c_start[close][:, None], c_end[close][:, None], j_start[None], j_end[None],
-                                  smallest=True, exact_below=float(self.floor[row])) >= self.floor[row]
+            if self.inst.polygons:
+                clear = combo_clearances(self.inst, c_start[close][:, None], c_end[close][:, None], j_start[None], j_end[None],
+                                         smallest=True, exact_below=float(self.floor[row]))
+            else:
+                clear = smallest_clearance(self.inst, c_start, c_end, close[:, None], j_start, j_end, np.arange(len(used))[None, :])
+            ok = clear >= self.floor[row]
             ok = ok[:, inv]  # (close, samples)
             blocks.append((j, close, ok[:, self.window].all(axis=2)))
         return _TimedGrid(grid, s_cell, g_cell, blocks)
