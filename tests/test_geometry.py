@@ -213,7 +213,7 @@ def _segment_distance_numpy(p0, p1, q0, q1):
 
 
 def _numpy_reference(p0, p1, q0, q1):
-    (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, a_safe, e_safe) = geometry._segment_parts(p0, p1, q0, q1)
+    (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, a_safe, e_safe) = _segment_parts(p0, p1, q0, q1)
     dist, t = geometry.point_to_segment(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)
     s = np.zeros_like(dist)
     d_c, t_c = geometry.point_to_segment(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)
@@ -225,12 +225,50 @@ def _numpy_reference(p0, p1, q0, q1):
     d_c, s_c = geometry.point_to_segment(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)
     better = d_c < dist
     dist, s, t = np.where(better, d_c, dist), np.where(better, s_c, s), np.where(better, 1.0, t)
-    crossing, rx, ry = geometry._crossing(p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y, d1x, d1y, d2x, d2y)
+    crossing, rx, ry = _crossing(p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y, d1x, d1y, d2x, d2y)
     safe = np.where(crossing, d1x * d2y - d1y * d2x, 1.0)
     s = np.where(crossing, (rx * d2y - ry * d2x) / safe, s)
     t = np.where(crossing, (rx * d1y - ry * d1x) / safe, t)
     dist = np.where(crossing, 0.0, dist)
     return dist, s, t
+
+
+def _segment_parts(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> tuple[tuple, tuple, tuple]:
+    """The end points' components, the two directions, and which segments have positive length
+    (with their squared lengths, zeros replaced by 1), as the numpy references use them."""
+    p0x, p0y, p1x, p1y = p0[..., 0], p0[..., 1], p1[..., 0], p1[..., 1]
+    q0x, q0y, q1x, q1y = q0[..., 0], q0[..., 1], q1[..., 0], q1[..., 1]
+    d1x, d1y = p1x - p0x, p1y - p0y
+    d2x, d2y = q1x - q0x, q1y - q0y
+    a = d1x * d1x + d1y * d1y
+    e = d2x * d2x + d2y * d2y
+    a_nz, e_nz = a > 0.0, e > 0.0
+    return (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, np.where(a_nz, a, 1.0), np.where(e_nz, e, 1.0))
+
+
+def _crossing(p0x: np.ndarray, p0y: np.ndarray, p1x: np.ndarray, p1y: np.ndarray, q0x: np.ndarray, q0y: np.ndarray, q1x: np.ndarray,
+              q1y: np.ndarray, d1x: np.ndarray, d1y: np.ndarray, d2x: np.ndarray, d2y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Proper crossing (each segment's end points strictly on both sides of the other), and
+    ``r = q0 - p0``."""
+    rx, ry = q0x - p0x, q0y - p0y
+    side_q0 = d1x * ry - d1y * rx
+    side_q1 = d1x * (q1y - p0y) - d1y * (q1x - p0x)
+    side_p0 = d2x * (-ry) - d2y * (-rx)
+    side_p1 = d2x * (p1y - q0y) - d2y * (p1x - q0x)
+    return (side_q0 * side_q1 < 0.0) & (side_p0 * side_p1 < 0.0), rx, ry
+
+
+def _segment_distance_only_numpy(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+    """``segment_distance_only`` as numpy computed it before it was compiled (the reference)."""
+    (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, a_safe, e_safe) = _segment_parts(p0, p1, q0, q1)
+    sq = np.minimum(
+        np.minimum(geometry._point_segment_sq_safe(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)[0],
+                   geometry._point_segment_sq_safe(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)[0]),
+        np.minimum(geometry._point_segment_sq_safe(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)[0],
+                   geometry._point_segment_sq_safe(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)[0]),
+    )
+    crossing = _crossing(p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y, d1x, d1y, d2x, d2y)[0]
+    return np.where(crossing, 0.0, np.sqrt(sq))
 
 
 def _awkward_segments(rng, n):
@@ -257,6 +295,13 @@ def test_segment_distance_compiled_equals_numpy_bit_for_bit():
     assert (want[0] == 0.0).sum() > 1000 and np.isnan(want[0]).sum() >= 10  # crossings and NaN among the samples
     for g, w in zip(got, want, strict=True):
         np.testing.assert_array_equal(g, w)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        only = _segment_distance_only_numpy(p0, p1, q0, q1)
+    np.testing.assert_array_equal(segment_distance_only(p0, p1, q0, q1), only)
+    assert np.isnan(only).sum() >= 10
+    # The distances agree where no candidate is NaN (segment_distance keeps a first candidate it cannot compare).
+    finite = np.isfinite(np.stack([p0, p1, q0, q1])).all(axis=(0, 2))
+    np.testing.assert_array_equal(only[finite], want[0][finite])
     # Leading axes broadcast as numpy broadcasts them: one segment against many, stacked.
     got = segment_distance(p0[:1, None], p1[:1, None], q0[None, :50].reshape(1, 50, 2), q1[None, :50])
     want = _segment_distance_numpy(p0[:1, None], p1[:1, None], q0[None, :50], q1[None, :50])
@@ -271,3 +316,13 @@ def test_segment_distance_compiled_equals_numpy_on_any_segments(c):
     p0, p1, q0, q1 = (np.array([c[2 * k:2 * k + 2]]) for k in range(4))
     for g, w in zip(segment_distance(p0, p1, q0, q1), _segment_distance_numpy(p0, p1, q0, q1), strict=True):
         np.testing.assert_array_equal(g, w)
+    np.testing.assert_array_equal(segment_distance_only(p0, p1, q0, q1), _segment_distance_only_numpy(p0, p1, q0, q1))
+
+
+def test_the_smallest_clearance_is_nan_where_a_capsule_is():
+    # As np.minimum made it: a non-finite configuration is never mistaken for a clear one.
+    inst = INSTRUMENTS["moons-capsules"]
+    start, end = capsule_segments(inst, np.array([[0.0, 0.0], [25.0, 0.0]]), np.zeros(2), np.array([[0.3, 1.0], [2.0, 0.5]]))
+    start[0, 1, 0] = np.nan  # the fiber holder of the first
+    got = smallest_clearance(inst, start, end, np.array([0, 1]), start, end, np.array([1, 0]))
+    assert np.isnan(got).all()

@@ -131,30 +131,11 @@ def point_to_segment(
     return np.sqrt(sq), u
 
 
-def _segment_parts(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> tuple[tuple, tuple, tuple]:
-    """The end points' components, the two directions, and which segments have positive length
-    (with their squared lengths, zeros replaced by 1), as :func:`segment_distance` and
-    :func:`segment_distance_only` use them."""
-    p0x, p0y, p1x, p1y = p0[..., 0], p0[..., 1], p1[..., 0], p1[..., 1]
-    q0x, q0y, q1x, q1y = q0[..., 0], q0[..., 1], q1[..., 0], q1[..., 1]
-    d1x, d1y = p1x - p0x, p1y - p0y
-    d2x, d2y = q1x - q0x, q1y - q0y
-    a = d1x * d1x + d1y * d1y
-    e = d2x * d2x + d2y * d2y
-    a_nz, e_nz = a > 0.0, e > 0.0
-    return (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, np.where(a_nz, a, 1.0), np.where(e_nz, e, 1.0))
-
-
-def _crossing(p0x: np.ndarray, p0y: np.ndarray, p1x: np.ndarray, p1y: np.ndarray, q0x: np.ndarray, q0y: np.ndarray, q1x: np.ndarray,
-              q1y: np.ndarray, d1x: np.ndarray, d1y: np.ndarray, d2x: np.ndarray, d2y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Proper crossing (each segment's end points strictly on both sides of the other), and
-    ``r = q0 - p0``."""
-    rx, ry = q0x - p0x, q0y - p0y
-    side_q0 = d1x * ry - d1y * rx
-    side_q1 = d1x * (q1y - p0y) - d1y * (q1x - p0x)
-    side_p0 = d2x * (-ry) - d2y * (-rx)
-    side_p1 = d2x * (p1y - q0y) - d2y * (p1x - q0x)
-    return (side_q0 * side_q1 < 0.0) & (side_p0 * side_p1 < 0.0), rx, ry
+def _flat_rows(*points: np.ndarray) -> tuple[list[np.ndarray], tuple[int, ...]]:
+    """Point arrays ``(..., 2)`` broadcast together, as contiguous float64 rows ``(M, 2)`` for the
+    compiled loops, and the leading shape to give their results back."""
+    arrays = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in points))
+    return [np.ascontiguousarray(a).reshape(-1, 2) for a in arrays], arrays[0].shape[:-1]
 
 
 def segment_distance(
@@ -175,9 +156,7 @@ def segment_distance(
     Returns:
         ``(distance, s, t)``: closest points are ``p0 + s (p1 - p0)`` and ``q0 + t (q1 - q0)``.
     """
-    p0, p1, q0, q1 = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (p0, p1, q0, q1)))
-    shape = p0.shape[:-1]
-    flat = [np.ascontiguousarray(a).reshape(-1, 2) for a in (p0, p1, q0, q1)]
+    flat, shape = _flat_rows(p0, p1, q0, q1)
     dist, s, t = np.empty(len(flat[0])), np.empty(len(flat[0])), np.empty(len(flat[0]))
     capsule_kernels.segment_distances(*flat, dist, s, t)  # one compiled loop, numpy's arithmetic (tested bit for bit)
     return dist.reshape(shape), s.reshape(shape), t.reshape(shape)
@@ -186,16 +165,13 @@ def segment_distance(
 def segment_distance_only(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
     """The distance of :func:`segment_distance` alone, bit for bit (squared distances compared,
     one square root: ``sqrt`` is monotone and correctly rounded), without the closest points'
-    parameters, for the searches that need only the distance."""
-    (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, a_safe, e_safe) = _segment_parts(p0, p1, q0, q1)
-    sq = np.minimum(
-        np.minimum(_point_segment_sq_safe(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)[0],
-                   _point_segment_sq_safe(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)[0]),
-        np.minimum(_point_segment_sq_safe(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)[0],
-                   _point_segment_sq_safe(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)[0]),
-    )
-    crossing = _crossing(p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y, d1x, d1y, d2x, d2y)[0]
-    return np.where(crossing, 0.0, np.sqrt(sq))
+    parameters, for the searches that need only the distance. (A NaN among the candidates gives
+    NaN here, as ``np.minimum`` does; :func:`segment_distance` keeps the first candidate it cannot
+    compare.)"""
+    flat, shape = _flat_rows(p0, p1, q0, q1)
+    dist = np.empty(len(flat[0]))
+    capsule_kernels.segment_distances_only(*flat, dist)
+    return dist.reshape(shape)
 
 
 def _point_segment_sq_safe(
@@ -210,16 +186,6 @@ def _point_segment_sq_safe(
     return ex * ex + ey * ey, u
 
 
-def _point_segment_sq(
-    px: np.ndarray, py: np.ndarray, ax: np.ndarray, ay: np.ndarray, dx: np.ndarray, dy: np.ndarray, dd: np.ndarray,
-) -> np.ndarray:
-    """Squared distance from points ``p`` to segments ``a + u d`` of positive length ``dd = d . d``."""
-    u = np.minimum(np.maximum(((px - ax) * dx + (py - ay) * dy) / dd, 0.0), 1.0)
-    ex = px - (ax + u * dx)
-    ey = py - (ay + u * dy)
-    return ex * ex + ey * ey
-
-
 def combo_clearances(
     instrument: Instrument, p_start: np.ndarray, p_end: np.ndarray, q_start: np.ndarray, q_end: np.ndarray,
     smallest: bool = False, exact_below: float | None = None,
@@ -227,11 +193,10 @@ def combo_clearances(
     """Clearances ``(..., K)`` of the capsule combinations between two positioners' capsules.
 
     The same values as ``segment_distance(p[..., ca, :], q[..., cb, :])[0] - radii`` (``ca, cb,
-    radii`` from :func:`capsule_tables`), for planners' searches: only the distance, and per
-    combination the cheapest formula its capsule shapes allow (a disc is a zero-length
-    segment): point to point, point to segment, or segment to segment. The capsule arrays are
-    ``(..., C, 2)`` with broadcastable leading axes. With ``smallest``, only the smallest
-    clearance over the combinations, shape ``(...)``; then, on an instrument with polygon zones,
+    radii`` from :func:`capsule_tables`), for planners' searches: only the distance. The capsule
+    arrays are ``(..., C, 2)`` with broadcastable leading axes. With ``smallest``, only the
+    smallest clearance over the combinations, shape ``(...)``, each combination by the cheapest
+    formula its capsule shapes allow (:func:`smallest_clearance`); then, on an instrument with polygon zones,
     ``exact_below`` (see :func:`fiberplan.zones.smallest`) skips the exact distances of zone
     pairs whose enclosing discs keep at least that much clearance: the result still decides
     ``>= t`` exactly for every threshold ``t <= exact_below``.
@@ -247,38 +212,15 @@ def combo_clearances(
         c = p_start.shape[-2]
         flat = [np.broadcast_to(a, (*lead, c, 2)).reshape(-1, c, 2) for a in (p_start, p_end, q_start, q_end)]
         return zones.clearances(instrument, *flat)[0].reshape(*lead, -1)
-    _, start_mm, end_mm, combos, radii = capsule_tables(instrument)
-    disc = start_mm == end_mm
-    out = []
-    for k, (a, b) in enumerate(combos.tolist()):
-        p0x, p0y = p_start[..., a, 0], p_start[..., a, 1]
-        q0x, q0y = q_start[..., b, 0], q_start[..., b, 1]
-        if disc[a] and disc[b]:
-            dx, dy = p0x - q0x, p0y - q0y
-            sq = dx * dx + dy * dy
-        elif disc[a] or disc[b]:
-            if disc[a]:  # p is the point, q the segment
-                px, py, ax, ay, ex, ey = p0x, p0y, q0x, q0y, q_end[..., b, 0], q_end[..., b, 1]
-            else:
-                px, py, ax, ay, ex, ey = q0x, q0y, p0x, p0y, p_end[..., a, 0], p_end[..., a, 1]
-            dx, dy = ex - ax, ey - ay
-            sq = _point_segment_sq(px, py, ax, ay, dx, dy, dx * dx + dy * dy)
-        else:  # closest at an end point unless they cross (segment_distance)
-            p1x, p1y, q1x, q1y = p_end[..., a, 0], p_end[..., a, 1], q_end[..., b, 0], q_end[..., b, 1]
-            d1x, d1y, d2x, d2y = p1x - p0x, p1y - p0y, q1x - q0x, q1y - q0y
-            d1, d2 = d1x * d1x + d1y * d1y, d2x * d2x + d2y * d2y
-            sq = np.minimum(
-                np.minimum(_point_segment_sq(p0x, p0y, q0x, q0y, d2x, d2y, d2), _point_segment_sq(p1x, p1y, q0x, q0y, d2x, d2y, d2)),
-                np.minimum(_point_segment_sq(q0x, q0y, p0x, p0y, d1x, d1y, d1), _point_segment_sq(q1x, q1y, p0x, p0y, d1x, d1y, d1)),
-            )
-            rx, ry = q0x - p0x, q0y - p0y
-            crossing = ((d1x * ry - d1y * rx) * (d1x * (q1y - p0y) - d1y * (q1x - p0x)) < 0.0) & (
-                (d2x * (-ry) - d2y * (-rx)) * (d2x * (p1y - q0y) - d2y * (p1x - q0x)) < 0.0)
-            sq = np.where(crossing, 0.0, sq)
-        out.append(np.sqrt(sq) - radii[k])
-        if smallest and k:
-            out = [np.minimum(out[0], out[1])]
-    return out[0] if smallest else np.stack(out, axis=-1)
+    _, _, _, combos, radii = capsule_tables(instrument)
+    if not smallest:
+        ca, cb = combos[:, 0], combos[:, 1]
+        return segment_distance(p_start[..., ca, :], p_end[..., ca, :], q_start[..., cb, :], q_end[..., cb, :])[0] - radii
+    lead = np.broadcast_shapes(p_start.shape[:-2], q_start.shape[:-2])
+    p_rows, q_rows = (np.arange(int(np.prod(a.shape[:-2], dtype=np.int64))).reshape(a.shape[:-2]) for a in (p_start, q_start))
+    c = p_start.shape[-2]
+    return smallest_clearance(instrument, p_start.reshape(-1, c, 2), p_end.reshape(-1, c, 2), np.broadcast_to(p_rows, lead),
+                              q_start.reshape(-1, c, 2), q_end.reshape(-1, c, 2), np.broadcast_to(q_rows, lead))
 
 
 def smallest_clearance(
