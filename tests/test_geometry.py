@@ -7,7 +7,6 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from fiberplan import geometry
 from fiberplan.geometry import (
     capsule_segments,
     capsule_tables,
@@ -214,15 +213,15 @@ def _segment_distance_numpy(p0, p1, q0, q1):
 
 def _numpy_reference(p0, p1, q0, q1):
     (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, a_safe, e_safe) = _segment_parts(p0, p1, q0, q1)
-    dist, t = geometry.point_to_segment(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)
+    dist, t = _point_to_segment(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)
     s = np.zeros_like(dist)
-    d_c, t_c = geometry.point_to_segment(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)
+    d_c, t_c = _point_to_segment(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)
     better = d_c < dist
     dist, s, t = np.where(better, d_c, dist), np.where(better, 1.0, s), np.where(better, t_c, t)
-    d_c, s_c = geometry.point_to_segment(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)
+    d_c, s_c = _point_to_segment(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)
     better = d_c < dist
     dist, s, t = np.where(better, d_c, dist), np.where(better, s_c, s), np.where(better, 0.0, t)
-    d_c, s_c = geometry.point_to_segment(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)
+    d_c, s_c = _point_to_segment(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)
     better = d_c < dist
     dist, s, t = np.where(better, d_c, dist), np.where(better, s_c, s), np.where(better, 1.0, t)
     crossing, rx, ry = _crossing(p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y, d1x, d1y, d2x, d2y)
@@ -231,6 +230,29 @@ def _numpy_reference(p0, p1, q0, q1):
     t = np.where(crossing, (rx * d1y - ry * d1x) / safe, t)
     dist = np.where(crossing, 0.0, dist)
     return dist, s, t
+
+
+def _point_to_segment(
+    px: np.ndarray, py: np.ndarray, ax: np.ndarray, ay: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+    nonzero: np.ndarray, safe_dd: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Distance from points ``p`` to segments ``a + u d`` and the parameter ``u`` (components
+    apart: these arrays are small and numpy's per-call cost dominates). ``nonzero`` marks
+    segments of positive length ``dd = d . d``; ``safe_dd`` is ``dd`` with zeros replaced by 1."""
+    sq, u = _point_segment_sq_safe(px, py, ax, ay, dx, dy, nonzero, safe_dd)
+    return np.sqrt(sq), u
+
+
+def _point_segment_sq_safe(
+    px: np.ndarray, py: np.ndarray, ax: np.ndarray, ay: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+    nonzero: np.ndarray, safe_dd: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`point_to_segment`'s squared distance and parameter ``u`` (the one arithmetic both use)."""
+    u = np.minimum(np.maximum(((px - ax) * dx + (py - ay) * dy) / safe_dd, 0.0), 1.0)
+    u = np.where(nonzero, u, 0.0)
+    ex = px - (ax + u * dx)
+    ey = py - (ay + u * dy)
+    return ex * ex + ey * ey, u
 
 
 def _segment_parts(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> tuple[tuple, tuple, tuple]:
@@ -262,10 +284,10 @@ def _segment_distance_only_numpy(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray,
     """``segment_distance_only`` as numpy computed it before it was compiled (the reference)."""
     (p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y), (d1x, d1y, d2x, d2y), (a_nz, e_nz, a_safe, e_safe) = _segment_parts(p0, p1, q0, q1)
     sq = np.minimum(
-        np.minimum(geometry._point_segment_sq_safe(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)[0],
-                   geometry._point_segment_sq_safe(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)[0]),
-        np.minimum(geometry._point_segment_sq_safe(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)[0],
-                   geometry._point_segment_sq_safe(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)[0]),
+        np.minimum(_point_segment_sq_safe(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)[0],
+                   _point_segment_sq_safe(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)[0]),
+        np.minimum(_point_segment_sq_safe(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)[0],
+                   _point_segment_sq_safe(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)[0]),
     )
     crossing = _crossing(p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y, d1x, d1y, d2x, d2y)[0]
     return np.where(crossing, 0.0, np.sqrt(sq))

@@ -119,8 +119,8 @@ def test_bad_detour_settings_are_rejected():
 def test_the_pruned_smallest_clearance_is_the_full_minimum_bit_for_bit():
     """The detour grid's clearance takes exact distances only for the combinations that can
     hold the minimum; the result is the full minimum's bits, degenerate segments included."""
+    from fiberplan import capsule_kernels
     from fiberplan.geometry import segment_distance_only
-    from fiberplan.planners.mpc.detour import _smallest_clearance
 
     rng = np.random.default_rng(0)
     for _ in range(300):
@@ -132,4 +132,40 @@ def test_the_pruned_smallest_clearance_is_the_full_minimum_bit_for_bit():
         radii = rng.uniform(0, 2, k)
         full = (segment_distance_only(p0, p1, q0, q1) - radii).min(axis=1)
         half = 0.5 * np.hypot(p1[..., 0] - p0[..., 0], p1[..., 1] - p0[..., 1])
-        np.testing.assert_array_equal(_smallest_clearance(p0, p1, q0, q1, radii, 0.5 * (p0 + p1), half), full)
+        half_q = 0.5 * np.hypot(q1[:, 0] - q0[:, 0], q1[:, 1] - q0[:, 1])
+        # Every cell below the cutoff (the bound's tables: one capsule, any numbers), so every cell is exact.
+        lb_tables = np.zeros((r, 1, 2)), np.ones((r, 1, 2)), np.ones((r, 1), dtype=bool), np.full((r, 1), 2.0)
+        out = np.empty(r)
+        capsule_kernels.detour_clearances(*lb_tables, np.zeros(k, dtype=np.int64), 0.0, 0.0, np.zeros(k), radii, np.inf,
+                                          p0, p1, np.arange(k), q0, q1, 0.5 * (p0 + p1), half, 0.5 * (q0 + q1), half_q, out)
+        np.testing.assert_array_equal(out, full)
+
+
+@pytest.mark.parametrize("name", ["desi", "moons-capsules", "sdss", "moons"])
+def test_the_detour_grid_clearance_is_the_bound_above_the_cutoff_and_exact_below(name):
+    """What the compiled loop gives, against numpy: the base-and-reach bound where it is at least
+    the cutoff, the smallest exact clearance over the combinations below it."""
+    from fiberplan.geometry import capsule_segments, capsule_tables, segment_distance_only
+    from fiberplan.planners.mpc.detour import DetourGrid
+
+    sc = make_scenario(name, 7, "random", 3)
+    inst = sc.instrument
+    step = inst.speeds_rad_s * inst.control_dt_s
+    grid = DetourGrid(sc, 0, step, 0.1, 0.1)
+    others = np.arange(1, 7)
+    _, _, _, combos, radii = capsule_tables(inst)
+    ca, cb = combos[:, 0], combos[:, 1]
+    o_start, o_end = capsule_segments(inst, sc.base_xy[others], sc.orient[others], sc.start[others])
+    a, d, nz, safe = grid._lb_tables
+    cutoff = 2.0
+    got = grid._clearance_each(others, sc.start[others], cutoff)
+    for k, j in enumerate(others):
+        base = sc.base_xy[j]
+        reach = np.maximum(np.linalg.norm(o_start[k] - base, axis=-1), np.linalg.norm(o_end[k] - base, axis=-1))[cb]
+        u = np.where(nz, np.clip(((base[0] - a[..., 0]) * d[..., 0] + (base[1] - a[..., 1]) * d[..., 1]) / safe, 0.0, 1.0), 0.0)
+        ex, ey = base[0] - (a[..., 0] + u * d[..., 0]), base[1] - (a[..., 1] + u * d[..., 1])
+        bound = (np.sqrt(ex * ex + ey * ey)[:, grid._combo_capsule] - reach - radii).min(axis=1)
+        exact = (segment_distance_only(grid.seg_start[:, ca], grid.seg_end[:, ca], o_start[k][cb], o_end[k][cb]) - radii).min(axis=1)
+        below = bound < cutoff
+        assert below.any() and (~below).any()
+        np.testing.assert_array_equal(got[k], np.where(below, exact, bound))

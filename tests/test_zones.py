@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 import fiberplan as fp
 from fiberplan import zones
-from fiberplan.geometry import capsule_segments, clearance_between, pair_clearance
+from fiberplan.geometry import capsule_segments, clearance_between, pair_clearance, segment_distance, segment_distance_only
 from fiberplan.instrument_io import load_instrument
 
 MOONS = load_instrument("moons")
@@ -194,3 +194,146 @@ def test_solo_free_cells_match_the_exact_clearance_test():
         fast = solo._free(sc, i, grid.configs, others, sc.start[others], threshold)
         assert 0 < exact.sum() < len(exact)
         np.testing.assert_array_equal(fast, exact)
+
+
+# The numpy forms of zones.clearances and zones.smallest before they were compiled: the references.
+def _exact(zp: zones._ZonePair, si: np.ndarray, ei: np.ndarray, sj: np.ndarray, ej: np.ndarray) -> np.ndarray:
+    """Segment distances ``(R, Kz)`` of the zone pair's combos for capsule ends ``(R, C, 2)``."""
+    return segment_distance_only(si[:, zp.ca], ei[:, zp.ca], sj[:, zp.cb], ej[:, zp.cb])
+
+
+def _depth(zp: zones._ZonePair, rows: np.ndarray, si: np.ndarray, ei: np.ndarray, sj: np.ndarray, ej: np.ndarray) -> np.ndarray:
+    """How deep a zone lies inside the other, a polygon (> 0), for the rows ``rows``, ``(R,)``."""
+    depth = np.zeros(len(rows))
+    if zp.poly_b:  # zone a of i inside polygon b of j
+        depth = np.maximum(depth, _inside_depth(_core(si[rows], ei[rows], zp.points_a, zp.ends_a), sj[rows][:, zp.points_b]))
+    if zp.poly_a:  # zone b of j inside polygon a of i
+        depth = np.maximum(depth, _inside_depth(_core(sj[rows], ej[rows], zp.points_b, zp.ends_b), si[rows][:, zp.points_a]))
+    return depth
+
+
+def _core(start: np.ndarray, end: np.ndarray, rows: np.ndarray, ends: bool) -> np.ndarray:
+    """A zone's core points ``(L, Q, 2)``: a polygon's vertices (its edges' starts), a capsule's two ends."""
+    return np.concatenate([start[:, rows], end[:, rows]], axis=1) if ends else start[:, rows]
+
+
+def _inside_depth(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """How deep the deepest of points ``(L, Q, 2)`` lies inside the convex counterclockwise
+    polygon ``(L, V, 2)``: its smallest distance to an edge's line, > 0 only inside; ``(L,)``."""
+    edge = np.roll(polygon, -1, axis=1) - polygon
+    length = np.maximum(np.linalg.norm(edge, axis=-1), _EPS)  # (L, V)
+    rel = points[:, :, None, :] - polygon[:, None, :, :]  # (L, Q, V, 2)
+    side = (edge[:, None, :, 0] * rel[..., 1] - edge[:, None, :, 1] * rel[..., 0]) / length[:, None, :]
+    return side.min(axis=-1).max(axis=-1)
+
+
+def _rows(arr: np.ndarray, lead: tuple[int, ...], flat: np.ndarray) -> np.ndarray:
+    """``arr[..., C, 2]``'s rows at the flat indices ``flat`` of the broadcast leading shape ``lead``."""
+    own = arr.shape[:-2]
+    idx = np.unravel_index(flat, lead)
+    offset = len(lead) - len(own)
+    pick = tuple(idx[offset + k] if own[k] > 1 else np.zeros(len(flat), dtype=np.int64) for k in range(len(own)))
+    return arr[pick]
+
+
+_EPS = 1e-12  # zones' contact distance (geometry._EPS)
+
+
+def _clearances_numpy(instrument, start_i, end_i, start_j, end_j):
+    """``zones.clearances`` as numpy computed it before it was compiled: the reference its loop
+    must equal bit for bit (the safety layers, the mpc's constraints and the verifier read it)."""
+    tables = zones._tables(instrument)
+    n = len(start_i)
+    clear = np.empty((n, tables.n_combos))
+    dist = np.empty((n, tables.n_combos))
+    s = np.zeros((n, tables.n_combos))
+    t = np.zeros((n, tables.n_combos))
+    exact = np.zeros((n, tables.n_combos), dtype=bool)
+    ci, cj = zones._centres(tables, start_i, end_i), zones._centres(tables, start_j, end_j)
+    # Every zone pair's disc bound at once, then every near combination's exact segment distance
+    # in one call (the per-element arithmetic of the zone-by-zone form, without its Python loop).
+    d = ci[:, tables.pair_a] - cj[:, tables.pair_b]  # (L, P, 2)
+    bounds = np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) - tables.disc_radius[tables.pair_a] - tables.disc_radius[tables.pair_b]
+    per_combo = bounds[:, tables.combo_pair]  # (L, K)
+    clear[:] = per_combo
+    dist[:] = per_combo + tables.combo_radii
+    r, k = np.nonzero(per_combo < zones.EXACT_BELOW_MM)
+    if len(r):
+        ca, cb = tables.combo_ca[k], tables.combo_cb[k]
+        dd, ss, tt = segment_distance(start_i[r, ca], end_i[r, ca], start_j[r, cb], end_j[r, cb])
+        clear[r, k] = dd - tables.combo_radii[k]
+        dist[r, k] = dd
+        s[r, k] = ss
+        t[r, k] = tt
+        exact[r, k] = True
+    # A zone wholly inside a polygon touches no edge: only possible where the discs overlap.
+    for p, zp in enumerate(tables.pairs):
+        if not (zp.poly_a or zp.poly_b):
+            continue
+        overlap = np.flatnonzero(bounds[:, p] <= 0.0)
+        if len(overlap):
+            depth = _depth(zp, overlap, start_i, end_i, start_j, end_j)
+            inside = depth > 0.0
+            if np.any(inside):
+                rows, cols = overlap[inside][:, None], zp.combos[None, :]
+                clear[rows, cols] = np.minimum(clear[rows, cols], -(depth[inside] + zp.radius_sum)[:, None])
+    return clear, dist, s, t, exact
+
+
+def test_zone_clearances_compiled_equal_numpy_bit_for_bit():
+    # Pairs from apart to deeply overlapping (a zone wholly inside a polygon among them), random arms.
+    rng = np.random.default_rng(5)
+    n = 3000
+    lim = MOONS.limits_rad
+    base_j = rng.uniform(0.0, 1.2, n)[:, None] * PITCH * np.stack([np.cos(a := rng.uniform(0, 2 * np.pi, n)), np.sin(a)], -1)
+    si, ei = capsule_segments(MOONS, np.zeros((n, 2)), np.zeros(n), rng.uniform(lim[:, 0], lim[:, 1], (n, 2)))
+    sj, ej = capsule_segments(MOONS, base_j, rng.uniform(-np.pi, np.pi, n), rng.uniform(lim[:, 0], lim[:, 1], (n, 2)))
+    got, want = zones.clearances(MOONS, si, ei, sj, ej), _clearances_numpy(MOONS, si, ei, sj, ej)
+    assert want[4].any() and (~want[4]).any()  # exact and bounded combinations among the samples
+    assert (want[0] < -zones._tables(MOONS).pair_radius_sum.max()).any()  # and zones deep inside polygons
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+
+
+def _smallest_numpy(instrument, start_i, end_i, start_j, end_j, exact_below=zones.EXACT_BELOW_MM):
+    exact_below = min(float(exact_below), zones.EXACT_BELOW_MM)
+    tables = zones._tables(instrument)
+    lead = np.broadcast_shapes(start_i.shape[:-2], start_j.shape[:-2])
+    out = np.full(int(np.prod(lead)), np.inf)
+    ci, cj = zones._centres(tables, start_i, end_i), zones._centres(tables, start_j, end_j)
+    for zp in tables.pairs:
+        d = ci[..., zp.zone_a, :] - cj[..., zp.zone_b, :]
+        bound = (np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])
+                 - tables.disc_radius[zp.zone_a] - tables.disc_radius[zp.zone_b]).reshape(-1)
+        far = bound >= exact_below
+        np.minimum(out, np.where(far, bound, np.inf), out=out)
+        near = np.flatnonzero(~far)
+        if not len(near):
+            continue
+        si, ei = _rows(start_i, lead, near), _rows(end_i, lead, near)
+        sj, ej = _rows(start_j, lead, near), _rows(end_j, lead, near)
+        rows = np.arange(len(near))
+        value = (_exact(zp, si, ei, sj, ej) - zp.radii).min(axis=1)
+        overlap = bound[near] <= 0.0
+        if overlap.any() and (zp.poly_a or zp.poly_b):
+            depth = _depth(zp, rows[overlap], si, ei, sj, ej)
+            value[overlap] = np.where(depth > 0.0, np.minimum(value[overlap], -(depth + zp.radius_sum)), value[overlap])
+        out[near] = np.minimum(out[near], value)
+    return out.reshape(lead)
+
+
+@pytest.mark.parametrize("exact_below", [zones.EXACT_BELOW_MM, 0.5])
+def test_zone_smallest_compiled_equals_numpy_bit_for_bit(exact_below):
+    rng = np.random.default_rng(6)
+    n = 400
+    lim = MOONS.limits_rad
+    base_j = rng.uniform(0.0, 1.2, n)[:, None] * PITCH * np.stack([np.cos(a := rng.uniform(0, 2 * np.pi, n)), np.sin(a)], -1)
+    si, ei = capsule_segments(MOONS, np.zeros((n, 2)), np.zeros(n), rng.uniform(lim[:, 0], lim[:, 1], (n, 2)))
+    sj, ej = capsule_segments(MOONS, base_j, rng.uniform(-np.pi, np.pi, n), rng.uniform(lim[:, 0], lim[:, 1], (n, 2)))
+    want = _smallest_numpy(MOONS, si, ei, sj, ej, exact_below)
+    assert (want < -1.0).any() and (want >= exact_below).any()
+    np.testing.assert_array_equal(zones.smallest(MOONS, si, ei, sj, ej, exact_below), want)
+    # Leading axes broadcast: a few configurations of i against all of j.
+    grid = zones.smallest(MOONS, si[:3, None], ei[:3, None], sj[None], ej[None], exact_below)
+    assert grid.shape == (3, n)
+    np.testing.assert_array_equal(grid, _smallest_numpy(MOONS, si[:3, None], ei[:3, None], sj[None], ej[None], exact_below))

@@ -8,6 +8,12 @@ inputs and outputs:
   verifier read;
 - :func:`segment_distances_only`: :func:`fiberplan.geometry.segment_distance_only`, the
   distance alone (the zones' exact edge distances, the mpc's detours);
+- :func:`zone_clearances`, :func:`zone_smallest`: :func:`fiberplan.zones.clearances` and
+  :func:`fiberplan.zones.smallest`, MOONS' own zones (discs' bounds, exact edge distances near,
+  the depth of a zone inside a polygon);
+- :func:`detour_clearances`: the mpc's detour grids (:mod:`fiberplan.planners.mpc.detour`), a
+  positioner's every joint cell against a neighbour held still (with MOONS' zones, 134 edge
+  combinations per pair);
 - :func:`smallest_combo`: :func:`fiberplan.geometry.smallest_clearance`, the smallest clearance
   over an instrument's capsule combinations for configurations read by index from the start
   schedule's tables (:mod:`fiberplan.planners.mpc.schedule`), without numpy's gathered copies.
@@ -81,6 +87,39 @@ def _point_segment(px: float, py: float, ax: float, ay: float, dx: float, dy: fl
     return np.sqrt(ex * ex + ey * ey), u
 
 
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _segment_pair(p0x: float, p0y: float, p1x: float, p1y: float, q0x: float, q0y: float, q1x: float, q1y: float) -> tuple[float, float, float]:
+    """One segment pair's ``(distance, s, t)`` as :func:`segment_distances` computes it."""
+    d1x, d1y, d2x, d2y = p1x - p0x, p1y - p0y, q1x - q0x, q1y - q0y
+    a = d1x * d1x + d1y * d1y
+    e = d2x * d2x + d2y * d2y
+    a_nz, e_nz = a > 0.0, e > 0.0
+    a_safe = a if a_nz else 1.0
+    e_safe = e if e_nz else 1.0
+    d, tt = _point_segment(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)
+    ss = 0.0
+    d_c, t_c = _point_segment(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)
+    if d_c < d:
+        d, ss, tt = d_c, 1.0, t_c
+    d_c, s_c = _point_segment(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)
+    if d_c < d:
+        d, ss, tt = d_c, s_c, 0.0
+    d_c, s_c = _point_segment(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)
+    if d_c < d:
+        d, ss, tt = d_c, s_c, 1.0
+    rx, ry = q0x - p0x, q0y - p0y
+    side_q0 = d1x * ry - d1y * rx
+    side_q1 = d1x * (q1y - p0y) - d1y * (q1x - p0x)
+    side_p0 = d2x * (-ry) - d2y * (-rx)
+    side_p1 = d2x * (p1y - q0y) - d2y * (p1x - q0x)
+    if side_q0 * side_q1 < 0.0 and side_p0 * side_p1 < 0.0:
+        cross = d1x * d2y - d1y * d2x
+        ss = (rx * d2y - ry * d2x) / cross
+        tt = (rx * d1y - ry * d1x) / cross
+        d = 0.0
+    return d, ss, tt
+
+
 @numba.njit(cache=True, error_model="numpy", nogil=True)
 def segment_distances(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray,
                       dist: np.ndarray, s: np.ndarray, t: np.ndarray) -> None:  # pragma: no cover
@@ -88,36 +127,28 @@ def segment_distances(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.nda
     ``t`` ``(M,)``: the same candidates in the same order, a later one kept only where strictly
     closer, then the crossing segments at distance 0. (Compiled; tested bit for bit.)"""
     for m in range(p0.shape[0]):
-        p0x, p0y, p1x, p1y = p0[m, 0], p0[m, 1], p1[m, 0], p1[m, 1]
-        q0x, q0y, q1x, q1y = q0[m, 0], q0[m, 1], q1[m, 0], q1[m, 1]
-        d1x, d1y, d2x, d2y = p1x - p0x, p1y - p0y, q1x - q0x, q1y - q0y
-        a = d1x * d1x + d1y * d1y
-        e = d2x * d2x + d2y * d2y
-        a_nz, e_nz = a > 0.0, e > 0.0
-        a_safe = a if a_nz else 1.0
-        e_safe = e if e_nz else 1.0
-        d, tt = _point_segment(p0x, p0y, q0x, q0y, d2x, d2y, e_nz, e_safe)
-        ss = 0.0
-        d_c, t_c = _point_segment(p1x, p1y, q0x, q0y, d2x, d2y, e_nz, e_safe)
-        if d_c < d:
-            d, ss, tt = d_c, 1.0, t_c
-        d_c, s_c = _point_segment(q0x, q0y, p0x, p0y, d1x, d1y, a_nz, a_safe)
-        if d_c < d:
-            d, ss, tt = d_c, s_c, 0.0
-        d_c, s_c = _point_segment(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)
-        if d_c < d:
-            d, ss, tt = d_c, s_c, 1.0
-        rx, ry = q0x - p0x, q0y - p0y
-        side_q0 = d1x * ry - d1y * rx
-        side_q1 = d1x * (q1y - p0y) - d1y * (q1x - p0x)
-        side_p0 = d2x * (-ry) - d2y * (-rx)
-        side_p1 = d2x * (p1y - q0y) - d2y * (p1x - q0x)
-        if side_q0 * side_q1 < 0.0 and side_p0 * side_p1 < 0.0:
-            cross = d1x * d2y - d1y * d2x
-            ss = (rx * d2y - ry * d2x) / cross
-            tt = (rx * d1y - ry * d1x) / cross
-            d = 0.0
-        dist[m], s[m], t[m] = d, ss, tt
+        dist[m], s[m], t[m] = _segment_pair(p0[m, 0], p0[m, 1], p1[m, 0], p1[m, 1], q0[m, 0], q0[m, 1], q1[m, 0], q1[m, 1])
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _distance_only(p0x: float, p0y: float, p1x: float, p1y: float, q0x: float, q0y: float, q1x: float, q1y: float) -> float:
+    """One segment pair's distance as :func:`segment_distances_only` computes it."""
+    d1x, d1y, d2x, d2y = p1x - p0x, p1y - p0y, q1x - q0x, q1y - q0y
+    a = d1x * d1x + d1y * d1y
+    e = d2x * d2x + d2y * d2y
+    a_safe = a if a > 0.0 else 1.0
+    e_safe = e if e > 0.0 else 1.0
+    sq = _minimum(
+        _minimum(_point_segment_sq_safe(p0x, p0y, q0x, q0y, d2x, d2y, e > 0.0, e_safe),
+                 _point_segment_sq_safe(p1x, p1y, q0x, q0y, d2x, d2y, e > 0.0, e_safe)),
+        _minimum(_point_segment_sq_safe(q0x, q0y, p0x, p0y, d1x, d1y, a > 0.0, a_safe),
+                 _point_segment_sq_safe(q1x, q1y, p0x, p0y, d1x, d1y, a > 0.0, a_safe)),
+    )
+    rx, ry = q0x - p0x, q0y - p0y
+    if ((d1x * ry - d1y * rx) * (d1x * (q1y - p0y) - d1y * (q1x - p0x)) < 0.0) and (
+            (d2x * (-ry) - d2y * (-rx)) * (d2x * (p1y - q0y) - d2y * (p1x - q0x)) < 0.0):
+        return 0.0
+    return np.sqrt(sq)
 
 
 @numba.njit(cache=True, error_model="numpy", nogil=True)
@@ -125,25 +156,55 @@ def segment_distances_only(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: n
     """:func:`fiberplan.geometry.segment_distance_only` of ``(M, 2)`` end points into ``dist``
     ``(M,)``: the smallest squared candidate (NaN if any is), one square root, 0 where they cross."""
     for m in range(p0.shape[0]):
-        p0x, p0y, p1x, p1y = p0[m, 0], p0[m, 1], p1[m, 0], p1[m, 1]
-        q0x, q0y, q1x, q1y = q0[m, 0], q0[m, 1], q1[m, 0], q1[m, 1]
-        d1x, d1y, d2x, d2y = p1x - p0x, p1y - p0y, q1x - q0x, q1y - q0y
-        a = d1x * d1x + d1y * d1y
-        e = d2x * d2x + d2y * d2y
-        a_safe = a if a > 0.0 else 1.0
-        e_safe = e if e > 0.0 else 1.0
-        sq = _minimum(
-            _minimum(_point_segment_sq_safe(p0x, p0y, q0x, q0y, d2x, d2y, e > 0.0, e_safe),
-                     _point_segment_sq_safe(p1x, p1y, q0x, q0y, d2x, d2y, e > 0.0, e_safe)),
-            _minimum(_point_segment_sq_safe(q0x, q0y, p0x, p0y, d1x, d1y, a > 0.0, a_safe),
-                     _point_segment_sq_safe(q1x, q1y, p0x, p0y, d1x, d1y, a > 0.0, a_safe)),
-        )
-        rx, ry = q0x - p0x, q0y - p0y
-        if ((d1x * ry - d1y * rx) * (d1x * (q1y - p0y) - d1y * (q1x - p0x)) < 0.0) and (
-                (d2x * (-ry) - d2y * (-rx)) * (d2x * (p1y - q0y) - d2y * (p1x - q0x)) < 0.0):
-            dist[m] = 0.0
-        else:
-            dist[m] = np.sqrt(sq)
+        dist[m] = _distance_only(p0[m, 0], p0[m, 1], p1[m, 0], p1[m, 1], q0[m, 0], q0[m, 1], q1[m, 0], q1[m, 1])
+
+
+@numba.njit(cache=True, error_model="numpy", nogil=True)
+def detour_clearances(a: np.ndarray, d: np.ndarray, nonzero: np.ndarray, safe_dd: np.ndarray, combo_capsule: np.ndarray,
+                      base_x: float, base_y: float, reach: np.ndarray, radii: np.ndarray, cutoff: float,
+                      seg_start: np.ndarray, seg_end: np.ndarray, ca: np.ndarray, q0: np.ndarray, q1: np.ndarray,
+                      mid: np.ndarray, half: np.ndarray, mid_q: np.ndarray, half_q: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """:meth:`fiberplan.planners.mpc.detour.DetourGrid.clearance` against one neighbour held still,
+    every cell of the grid into ``out`` (cells,).
+
+    Per cell, the lower bound: the distance from the neighbour's base to each of the cell's
+    capsules (``a + u d``, ``(cells, U, 2)``), less the neighbour's reach and the radii, the
+    smallest over the combinations (``combo_capsule`` names each one's capsule among ``U``). Below
+    ``cutoff``, the exact clearance: the smallest of ``distance - radii`` over the combinations
+    (``seg_*[cell, ca[k]]`` against ``q0[k], q1[k]``), computed only for those whose bound (their
+    midpoints' distance less half lengths and radii) is below the exact clearance of the one with
+    the lowest bound."""
+    n_u = a.shape[1]
+    n_k = ca.shape[0]
+    dist = np.empty(n_u)
+    lower = np.empty(n_k)
+    for cell in range(a.shape[0]):
+        for u in range(n_u):
+            dist[u] = np.sqrt(_point_segment_sq_safe(base_x, base_y, a[cell, u, 0], a[cell, u, 1], d[cell, u, 0], d[cell, u, 1],
+                                                     nonzero[cell, u], safe_dd[cell, u]))
+        lb = 0.0
+        for k in range(n_k):
+            v = dist[combo_capsule[k]] - reach[k] - radii[k]
+            lb = v if k == 0 else _minimum(lb, v)
+        if not lb < cutoff:
+            out[cell] = lb
+            continue
+        first = 0
+        for k in range(n_k):
+            c = ca[k]
+            lower[k] = np.hypot(mid[cell, c, 0] - mid_q[k, 0], mid[cell, c, 1] - mid_q[k, 1]) - half[cell, c] - half_q[k] - radii[k]
+            if lower[first] == lower[first] and not lower[k] >= lower[first]:  # np.argmin: the first smallest, or the first NaN
+                first = k
+        c = ca[first]
+        upper = _distance_only(seg_start[cell, c, 0], seg_start[cell, c, 1], seg_end[cell, c, 0], seg_end[cell, c, 1],
+                               q0[first, 0], q0[first, 1], q1[first, 0], q1[first, 1]) - radii[first]
+        best = upper
+        for k in range(n_k):
+            if lower[k] - 1e-9 < upper:  # a margin for the bound's rounding
+                c = ca[k]
+                best = _minimum(best, _distance_only(seg_start[cell, c, 0], seg_start[cell, c, 1], seg_end[cell, c, 0], seg_end[cell, c, 1],
+                                                     q0[k, 0], q0[k, 1], q1[k, 0], q1[k, 1]) - radii[k])
+        out[cell] = best
 
 
 @numba.njit(cache=True, error_model="numpy", nogil=True)
@@ -186,4 +247,134 @@ def smallest_combo(p_start: np.ndarray, p_end: np.ndarray, p_index: np.ndarray, 
                     sq = 0.0
             c = np.sqrt(sq) - radii[k]
             best = c if k == 0 else _minimum(best, c)
+        out[m] = best
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _maximum(a: float, b: float) -> float:
+    """``np.maximum(a, b)``: NaN if either is."""
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a >= b else b
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _inside_depth(points_start: np.ndarray, points_end: np.ndarray, point_rows: np.ndarray, with_ends: bool,
+                  polygon: np.ndarray, polygon_rows: np.ndarray) -> float:
+    """:func:`fiberplan.zones._inside_depth` of one zone's core points (its capsules' starts at
+    ``point_rows``, and their ends ``with_ends``) in one convex polygon (its edges' starts at
+    ``polygon_rows``): the largest over the points of the smallest signed distance to an edge's line."""
+    n_v = polygon_rows.shape[0]
+    deepest = 0.0
+    for half in range(2 if with_ends else 1):
+        points = points_start if half == 0 else points_end
+        for q in range(point_rows.shape[0]):
+            px, py = points[point_rows[q], 0], points[point_rows[q], 1]
+            nearest = 0.0
+            for v in range(n_v):
+                ax, ay = polygon[polygon_rows[v], 0], polygon[polygon_rows[v], 1]
+                w = polygon_rows[(v + 1) % n_v]
+                ex, ey = polygon[w, 0] - ax, polygon[w, 1] - ay
+                length = np.sqrt(ex * ex + ey * ey)
+                if not length >= 1e-12:  # np.maximum(norm, _EPS), NaN kept
+                    length = length if length != length else 1e-12
+                side = (ex * (py - ay) - ey * (px - ax)) / length
+                nearest = side if v == 0 else _minimum(nearest, side)
+            deepest = nearest if (half == 0 and q == 0) else _maximum(deepest, nearest)
+    return deepest
+
+
+@numba.njit(cache=True, error_model="numpy", nogil=True)
+def zone_clearances(si: np.ndarray, ei: np.ndarray, sj: np.ndarray, ej: np.ndarray, ci: np.ndarray, cj: np.ndarray,
+                    pair_a: np.ndarray, pair_b: np.ndarray, disc_radius: np.ndarray, pair_poly_a: np.ndarray, pair_poly_b: np.ndarray,
+                    pair_radius_sum: np.ndarray, combo_pair: np.ndarray, combo_ca: np.ndarray, combo_cb: np.ndarray,
+                    combo_radii: np.ndarray, zone_rows: np.ndarray, zone_offsets: np.ndarray, zone_is_polygon: np.ndarray,
+                    exact_below: float, clear: np.ndarray, dist: np.ndarray, s: np.ndarray, t: np.ndarray,
+                    exact: np.ndarray) -> None:  # pragma: no cover
+    """:func:`fiberplan.zones.clearances` of ``L`` row-matched positioner pairs into ``clear``,
+    ``dist``, ``s``, ``t``, ``exact`` ``(L, K)``.
+
+    Per row: each zone pair's bound from its enclosing discs (centres ``ci``, ``cj`` ``(L, Z,
+    2)``); each combination's exact segment distance where its pair's bound is below
+    ``exact_below``, else the bound; then, for a zone pair with a polygon whose discs overlap,
+    the depth of the deepest core point of either zone inside the other's polygon, which lowers
+    the pair's combinations to ``-(depth + radii)``. ``zone_rows[zone_offsets[z]:zone_offsets[z +
+    1]]`` are zone ``z``'s capsule rows."""
+    n_p = pair_a.shape[0]
+    bounds = np.empty(n_p)
+    depth = np.empty(n_p)
+    for m in range(si.shape[0]):
+        for p in range(n_p):
+            za, zb = pair_a[p], pair_b[p]
+            dx, dy = ci[m, za, 0] - cj[m, zb, 0], ci[m, za, 1] - cj[m, zb, 1]
+            bounds[p] = np.sqrt(dx * dx + dy * dy) - disc_radius[za] - disc_radius[zb]
+        for k in range(combo_pair.shape[0]):
+            bound = bounds[combo_pair[k]]
+            if bound < exact_below:
+                a, b = combo_ca[k], combo_cb[k]
+                d, ss, tt = _segment_pair(si[m, a, 0], si[m, a, 1], ei[m, a, 0], ei[m, a, 1], sj[m, b, 0], sj[m, b, 1], ej[m, b, 0], ej[m, b, 1])
+                clear[m, k], dist[m, k], s[m, k], t[m, k], exact[m, k] = d - combo_radii[k], d, ss, tt, True
+            else:
+                clear[m, k], dist[m, k], s[m, k], t[m, k], exact[m, k] = bound, bound + combo_radii[k], 0.0, 0.0, False
+        lowered = False
+        for p in range(n_p):
+            depth[p] = 0.0
+            if (pair_poly_a[p] or pair_poly_b[p]) and bounds[p] <= 0.0:
+                za, zb = pair_a[p], pair_b[p]
+                rows_a, rows_b = zone_rows[zone_offsets[za]:zone_offsets[za + 1]], zone_rows[zone_offsets[zb]:zone_offsets[zb + 1]]
+                deep = 0.0
+                if pair_poly_b[p]:  # zone a of i inside polygon b of j
+                    deep = _maximum(deep, _inside_depth(si[m], ei[m], rows_a, not zone_is_polygon[za], sj[m], rows_b))
+                if pair_poly_a[p]:  # zone b of j inside polygon a of i
+                    deep = _maximum(deep, _inside_depth(sj[m], ej[m], rows_b, not zone_is_polygon[zb], si[m], rows_a))
+                depth[p] = deep
+                lowered = lowered or deep > 0.0
+        if lowered:
+            for k in range(combo_pair.shape[0]):
+                p = combo_pair[k]
+                if depth[p] > 0.0:
+                    clear[m, k] = _minimum(clear[m, k], -(depth[p] + pair_radius_sum[p]))
+
+
+@numba.njit(cache=True, error_model="numpy", nogil=True)
+def zone_smallest(si: np.ndarray, ei: np.ndarray, ci: np.ndarray, i_index: np.ndarray, sj: np.ndarray, ej: np.ndarray, cj: np.ndarray,
+                  j_index: np.ndarray, pair_a: np.ndarray, pair_b: np.ndarray, disc_radius: np.ndarray, pair_poly_a: np.ndarray,
+                  pair_poly_b: np.ndarray, pair_radius_sum: np.ndarray, pair_combos: np.ndarray, pair_offsets: np.ndarray,
+                  combo_ca: np.ndarray, combo_cb: np.ndarray, combo_radii: np.ndarray, zone_rows: np.ndarray, zone_offsets: np.ndarray,
+                  zone_is_polygon: np.ndarray, exact_below: float, out: np.ndarray) -> None:  # pragma: no cover
+    """:func:`fiberplan.zones.smallest` for configurations read by index (``si[i_index[m]]``
+    against ``sj[j_index[m]]``, their zones' disc centres ``ci``, ``cj``) into ``out`` ``(M,)``:
+    per zone pair, the discs' bound where it is at least ``exact_below``, else the smallest exact
+    clearance over the pair's combinations (``pair_combos[pair_offsets[p]:pair_offsets[p + 1]]``),
+    lowered to ``-(depth + radii)`` where the discs overlap and a zone lies inside the other's
+    polygon; the smallest over the pairs."""
+    for m in range(i_index.shape[0]):
+        u, v = i_index[m], j_index[m]
+        best = np.inf
+        for p in range(pair_a.shape[0]):
+            za, zb = pair_a[p], pair_b[p]
+            dx, dy = ci[u, za, 0] - cj[v, zb, 0], ci[u, za, 1] - cj[v, zb, 1]
+            bound = np.sqrt(dx * dx + dy * dy) - disc_radius[za] - disc_radius[zb]
+            if bound >= exact_below:
+                best = _minimum(best, bound)
+                continue
+            value = 0.0
+            for n in range(pair_offsets[p], pair_offsets[p + 1]):
+                k = pair_combos[n]
+                a, b = combo_ca[k], combo_cb[k]
+                c = _distance_only(si[u, a, 0], si[u, a, 1], ei[u, a, 0], ei[u, a, 1],
+                                   sj[v, b, 0], sj[v, b, 1], ej[v, b, 0], ej[v, b, 1]) - combo_radii[k]
+                value = c if n == pair_offsets[p] else _minimum(value, c)
+            if bound <= 0.0 and (pair_poly_a[p] or pair_poly_b[p]):
+                rows_a, rows_b = zone_rows[zone_offsets[za]:zone_offsets[za + 1]], zone_rows[zone_offsets[zb]:zone_offsets[zb + 1]]
+                deep = 0.0
+                if pair_poly_b[p]:
+                    deep = _maximum(deep, _inside_depth(si[u], ei[u], rows_a, not zone_is_polygon[za], sj[v], rows_b))
+                if pair_poly_a[p]:
+                    deep = _maximum(deep, _inside_depth(sj[v], ej[v], rows_b, not zone_is_polygon[zb], si[u], rows_a))
+                if deep > 0.0:
+                    value = _minimum(value, -(deep + pair_radius_sum[p]))
+            best = _minimum(best, value)
         out[m] = best

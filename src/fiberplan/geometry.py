@@ -120,17 +120,6 @@ def capsule_coordinates(
             origin_x + end_mm * dir_x - end_y * dir_y, origin_y + end_mm * dir_y + end_y * dir_x)
 
 
-def point_to_segment(
-    px: np.ndarray, py: np.ndarray, ax: np.ndarray, ay: np.ndarray, dx: np.ndarray, dy: np.ndarray,
-    nonzero: np.ndarray, safe_dd: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Distance from points ``p`` to segments ``a + u d`` and the parameter ``u`` (components
-    apart: these arrays are small and numpy's per-call cost dominates). ``nonzero`` marks
-    segments of positive length ``dd = d . d``; ``safe_dd`` is ``dd`` with zeros replaced by 1."""
-    sq, u = _point_segment_sq_safe(px, py, ax, ay, dx, dy, nonzero, safe_dd)
-    return np.sqrt(sq), u
-
-
 def _flat_rows(*points: np.ndarray) -> tuple[list[np.ndarray], tuple[int, ...]]:
     """Point arrays ``(..., 2)`` broadcast together, as contiguous float64 rows ``(M, 2)`` for the
     compiled loops, and the leading shape to give their results back."""
@@ -172,18 +161,6 @@ def segment_distance_only(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np
     dist = np.empty(len(flat[0]))
     capsule_kernels.segment_distances_only(*flat, dist)
     return dist.reshape(shape)
-
-
-def _point_segment_sq_safe(
-    px: np.ndarray, py: np.ndarray, ax: np.ndarray, ay: np.ndarray, dx: np.ndarray, dy: np.ndarray,
-    nonzero: np.ndarray, safe_dd: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`point_to_segment`'s squared distance and parameter ``u`` (the one arithmetic both use)."""
-    u = np.minimum(np.maximum(((px - ax) * dx + (py - ay) * dy) / safe_dd, 0.0), 1.0)
-    u = np.where(nonzero, u, 0.0)
-    ex = px - (ax + u * dx)
-    ey = py - (ay + u * dy)
-    return ex * ex + ey * ey, u
 
 
 def combo_clearances(

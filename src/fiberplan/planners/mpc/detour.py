@@ -23,7 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fiberplan.geometry import capsule_segments, capsule_tables, motion_bound, point_extents, point_to_segment, segment_distance_only
+from fiberplan import capsule_kernels
+from fiberplan.geometry import capsule_segments, capsule_tables, motion_bound, point_extents
 from fiberplan.planners.mpc.grid import JointGrid, clearance_to, cross_clearance, densify
 from fiberplan.scenario import Scenario
 
@@ -73,6 +74,10 @@ class DetourGrid(JointGrid):
         return out.reshape(self.shape)
 
     def _clearance_each(self, others: np.ndarray, q_others: np.ndarray, cutoff: float) -> list[np.ndarray]:
+        """Each cell's clearance to each of ``others`` held at ``q_others`` (:meth:`clearance`), in
+        one compiled loop per neighbour (:func:`fiberplan.capsule_kernels.detour_clearances`): a lower
+        bound from the neighbour's base and reach, and below ``cutoff`` the exact smallest clearance
+        over the combinations, those whose midpoint bound cannot hold it skipped."""
         inst = self.scenario.instrument
         _, _, _, combos, radii = capsule_tables(inst)
         ca, cb = combos[:, 0], combos[:, 1]
@@ -83,14 +88,12 @@ class DetourGrid(JointGrid):
             # Lower bound: distance from j's base to i's capsule minus the farthest point of j's capsule from its base.
             base = self.scenario.base_xy[j]
             reach = np.maximum(np.linalg.norm(o_start[k] - base, axis=-1), np.linalg.norm(o_end[k] - base, axis=-1))[cb]
-            dist, _ = point_to_segment(base[0], base[1], a[..., 0], a[..., 1], d[..., 0], d[..., 1], nz, safe)  # (cells, U)
-            lb = (dist[:, self._combo_capsule] - reach - radii).min(axis=1)
-            close = np.flatnonzero(lb < cutoff)
-            c = lb
-            if len(close):
-                c = lb.copy()
-                c[close] = _smallest_clearance(self.seg_start[close][:, ca], self.seg_end[close][:, ca], o_start[k][cb], o_end[k][cb], radii,
-                                               self._mid[close][:, ca], self._half[close][:, ca])
+            q0, q1 = o_start[k][cb], o_end[k][cb]
+            mid_q = 0.5 * (q0 + q1)
+            half_q = 0.5 * np.hypot(q1[..., 0] - q0[..., 0], q1[..., 1] - q0[..., 1])
+            c = np.empty(len(a))
+            capsule_kernels.detour_clearances(a, d, nz, safe, self._combo_capsule, float(base[0]), float(base[1]), reach, radii, float(cutoff),
+                                              self.seg_start, self.seg_end, ca, q0, q1, self._mid, self._half, mid_q, half_q, c)
             res.append(c)
         return res
 
@@ -234,26 +237,3 @@ def pair_resolution(
     to_wait = w_grid.waypoints(d_from, cell)
     from_wait = np.concatenate([w_grid.waypoints(d_to, cell, reverse=True), goal[waiter][None, :]])
     return PairResolution(first, waiter, first_route, wait_q, to_wait, from_wait)
-
-
-
-def _smallest_clearance(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray, radii: np.ndarray, mid_p: np.ndarray,
-                        half_p: np.ndarray) -> np.ndarray:
-    """``(segment_distance_only(p0, p1, q0, q1) - radii).min(axis=1)`` for ``p (R, K, 2)`` and
-    ``q (K, 2)``, bit for bit, with exact distances only for the combinations that can hold the
-    minimum: each combination's lower bound (its segments' midpoints' distance less their half
-    lengths and the radii) is compared with the exact clearance of the combination whose bound is
-    lowest, an upper bound of the minimum (many-edged zones: most combinations are far).
-    ``mid_p``, ``half_p``: the ``p`` segments' midpoints and half lengths."""
-    mid_q = 0.5 * (q0 + q1)
-    half_q = 0.5 * np.hypot(q1[..., 0] - q0[..., 0], q1[..., 1] - q0[..., 1])
-    gap = mid_p - mid_q
-    lower = np.hypot(gap[..., 0], gap[..., 1]) - half_p - half_q - radii  # (R, K)
-    rows = np.arange(len(p0))
-    first = np.argmin(lower, axis=1)
-    upper = segment_distance_only(p0[rows, first], p1[rows, first], q0[first], q1[first]) - radii[first]  # (R,)
-    r, k = np.nonzero(lower - 1e-9 < upper[:, None])  # a margin for the bound's rounding
-    out = upper.copy()
-    if len(r):
-        np.minimum.at(out, r, segment_distance_only(p0[r, k], p1[r, k], q0[k], q1[k]) - radii[k])
-    return out
