@@ -348,3 +348,23 @@ def test_the_smallest_clearance_is_nan_where_a_capsule_is():
     start[0, 1, 0] = np.nan  # the fiber holder of the first
     got = smallest_clearance(inst, start, end, np.array([0, 1]), start, end, np.array([1, 0]))
     assert np.isnan(got).all()
+
+
+@pytest.mark.parametrize("name", ["desi", "moons-capsules", "sdss", "moons"])
+def test_capsule_segments_compiled_equal_the_verifiers_coordinates_bit_for_bit(name):
+    # The planners' capsule ends (a compiled loop after numpy's cosines) and the verifier's (numpy alone).
+    from fiberplan.geometry import capsule_coordinates
+
+    inst = load_instrument(name)
+    rng = np.random.default_rng(3)
+    base, orient = rng.uniform(-50, 50, (6, 2)), rng.uniform(-np.pi, np.pi, 6)
+    lim = inst.limits_rad
+    for joints, b, o in (
+        (rng.uniform(lim[:, 0], lim[:, 1], (6, 2)), base, orient),
+        (rng.uniform(lim[:, 0], lim[:, 1], (5, 6, 2)), base, orient),  # leading time axis
+        (rng.uniform(lim[:, 0], lim[:, 1], (6, 9, 2)), base[:, None], orient[:, None]),  # paths per positioner
+    ):
+        start, end = capsule_segments(inst, b, o, joints)
+        sx, sy, ex, ey = capsule_coordinates(inst, b, o, joints)
+        np.testing.assert_array_equal(start, np.stack([sx, sy], axis=-1))
+        np.testing.assert_array_equal(end, np.stack([ex, ey], axis=-1))

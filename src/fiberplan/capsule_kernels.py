@@ -8,6 +8,8 @@ inputs and outputs:
   verifier read;
 - :func:`segment_distances_only`: :func:`fiberplan.geometry.segment_distance_only`, the
   distance alone (the zones' exact edge distances, the mpc's detours);
+- :func:`capsule_ends`: :func:`fiberplan.geometry.capsule_segments` after numpy's cosines and
+  sines (the planners' calls; the verifier keeps numpy's :func:`~fiberplan.geometry.capsule_coordinates`);
 - :func:`zone_clearances`, :func:`zone_smallest`: :func:`fiberplan.zones.clearances` and
   :func:`fiberplan.zones.smallest`, MOONS' own zones (discs' bounds, exact edge distances near,
   the depth of a zone inside a polygon);
@@ -378,3 +380,30 @@ def zone_smallest(si: np.ndarray, ei: np.ndarray, ci: np.ndarray, i_index: np.nd
                     value = _minimum(value, -(deep + pair_radius_sum[p]))
             best = _minimum(best, value)
         out[m] = best
+
+
+@numba.njit(cache=True, error_model="numpy", nogil=True)
+def capsule_ends(cos_a: np.ndarray, sin_a: np.ndarray, cos_ab: np.ndarray, sin_ab: np.ndarray, base_x: np.ndarray, base_y: np.ndarray,
+                 alpha_arm_mm: float, on_alpha: np.ndarray, start_mm: np.ndarray, end_mm: np.ndarray, lateral: bool,
+                 start_y_mm: np.ndarray, end_y_mm: np.ndarray, start: np.ndarray, end: np.ndarray) -> None:  # pragma: no cover
+    """:func:`fiberplan.geometry.capsule_segments` from the joints' cosines and sines (numpy's,
+    computed before), ``(M,)`` rows, into ``start``, ``end`` ``(M, C, 2)``: each capsule from the
+    joint it hangs from along its arm, and with ``lateral``, to the arm's left."""
+    for m in range(cos_a.shape[0]):
+        elbow_x = base_x[m] + alpha_arm_mm * cos_a[m]
+        elbow_y = base_y[m] + alpha_arm_mm * sin_a[m]
+        for c in range(on_alpha.shape[0]):
+            if on_alpha[c]:
+                ox, oy, dx, dy = base_x[m], base_y[m], cos_a[m], sin_a[m]
+            else:
+                ox, oy, dx, dy = elbow_x, elbow_y, cos_ab[m], sin_ab[m]
+            if lateral:
+                start[m, c, 0] = ox + start_mm[c] * dx - start_y_mm[c] * dy
+                start[m, c, 1] = oy + start_mm[c] * dy + start_y_mm[c] * dx
+                end[m, c, 0] = ox + end_mm[c] * dx - end_y_mm[c] * dy
+                end[m, c, 1] = oy + end_mm[c] * dy + end_y_mm[c] * dx
+            else:
+                start[m, c, 0] = ox + start_mm[c] * dx
+                start[m, c, 1] = oy + start_mm[c] * dy
+                end[m, c, 0] = ox + end_mm[c] * dx
+                end[m, c, 1] = oy + end_mm[c] * dy

@@ -93,8 +93,21 @@ def capsule_segments(
     Returns:
         ``(start, end)``, each of shape ``(..., N, C, 2)`` for the instrument's ``C`` capsules.
     """
-    start_x, start_y, end_x, end_y = capsule_coordinates(instrument, base_xy, orient, joints)
-    return np.stack([start_x, start_y], axis=-1), np.stack([end_x, end_y], axis=-1)
+    on_alpha, start_mm, end_mm, _, _ = capsule_tables(instrument)
+    a = joints[..., 0] + orient
+    ab = a + joints[..., 1]
+    lead = a.shape
+    # numpy's cosines and sines (as capsule_coordinates takes them), then one compiled loop
+    # instead of a dozen (..., N, C) temporaries: the same numbers.
+    trig = [np.ascontiguousarray(x, dtype=np.float64).reshape(-1) for x in (np.cos(a), np.sin(a), np.cos(ab), np.sin(ab))]
+    base = [np.ascontiguousarray(np.broadcast_to(base_xy[..., k], lead), dtype=np.float64).reshape(-1) for k in (0, 1)]
+    lateral = _lateral(instrument)
+    start_y, end_y = lateral if lateral is not None else (start_mm, end_mm)
+    start = np.empty((len(trig[0]), len(start_mm), 2))
+    end = np.empty_like(start)
+    capsule_kernels.capsule_ends(*trig, *base, float(instrument.alpha_arm_mm), on_alpha, start_mm, end_mm, lateral is not None,
+                                 start_y, end_y, start, end)
+    return start.reshape(*lead, len(start_mm), 2), end.reshape(*lead, len(start_mm), 2)
 
 
 def capsule_coordinates(
