@@ -1,7 +1,7 @@
 """Compiled capsule distances (numba): the inner loops of :mod:`fiberplan.geometry`.
 
-Two loops run here, each over rows of end points, with :mod:`fiberplan.geometry` shaping their
-inputs and outputs:
+Each loop runs over rows of end points (or of configurations read by index), with the calling
+module shaping its inputs and outputs:
 
 - :func:`segment_distances`: :func:`fiberplan.geometry.segment_distance` (distance and the
   closest points' parameters), which every planner's constraints, the safety layers and the
@@ -25,15 +25,16 @@ each combination's shapes allow: point to point, point to segment, segment to se
 an end point unless the segments cross). Compiled without ``fastmath``, numba fuses no
 multiply-add and reorders nothing; ``sqrt`` and division are correctly rounded; the clamps keep a
 NaN as ``np.minimum``/``np.maximum`` keep it. So the results are the numpy expressions' bit for
-bit (``tests/test_geometry.py`` keeps them as references), and no trajectory changes: the 23 runs
-of ``benchmarks/trajectory_hashes.py`` on DESI, ``moons-capsules`` and SDSS and 7 on MOONS' zones
-were compared before and after. The loops release the GIL, as numpy's array operations do, so the
-verifier's threads still run side by side.
+bit (``tests/test_geometry.py``, ``test_zones.py`` and ``test_mpc_detour.py`` keep them as
+references), and no trajectory changes: the 23 runs of ``benchmarks/trajectory_hashes.py`` on
+DESI, ``moons-capsules`` and SDSS and 8 on MOONS' zones were compared before and after. The
+loops release the GIL, as numpy's array operations do, so the verifier's threads still run side
+by side.
 
 Measured (``docs/results.md``, Scale): on MOONS 500 random seed 0 the start schedule's clearance
 searches took 10.8 of 50 s (cProfile); the plan 0.78 x the time (SDSS 547 random 0.65 x). The
 price is numba itself: about 100 MB more resident memory per process (its import and compiled
-code), and about a second of compilation the first time (cached after, beside this file).
+code), and a few seconds of compilation the first time (cached after, beside this file).
 """
 
 from __future__ import annotations
@@ -44,7 +45,8 @@ import numpy as np
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _point_segment_sq(px: float, py: float, ax: float, ay: float, dx: float, dy: float, dd: float) -> float:
-    """:func:`fiberplan.geometry._point_segment_sq` for one point and one segment."""
+    """Squared distance from a point to the segment ``a + u d`` (``u`` in [0, 1]) of positive
+    length ``dd = d . d``."""
     u = _unit(((px - ax) * dx + (py - ay) * dy) / dd)
     ex = px - (ax + u * dx)
     ey = py - (ay + u * dy)
