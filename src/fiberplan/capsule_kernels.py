@@ -31,9 +31,10 @@ DESI, ``moons-capsules`` and SDSS and 8 on MOONS' zones were compared before and
 loops release the GIL, as numpy's array operations do, so the verifier's threads still run side
 by side.
 
-Measured (``docs/results.md``, Scale): on MOONS 500 random seed 0 the start schedule's clearance
-searches took 10.8 of 50 s (cProfile); the plan 0.78 x the time (SDSS 547 random 0.65 x). The
-price is numba itself: about 100 MB more resident memory per process (its import and compiled
+Measured (``docs/results.md``, Speed; whole ``fiberplan plan`` processes against ``7e50051``):
+SDSS 547 random 0.62 x the time, ``moons-capsules`` 500 random 0.70 x, MOONS' zones 61 unfold
+0.40 x and 7 random 0.36 x (with less memory: numpy's temporaries are gone), DESI 5,000 0.97 x.
+The price is numba itself: about 100 MB more resident memory per process (its import and compiled
 code), and a few seconds of compilation the first time (cached after, beside this file).
 """
 
