@@ -363,6 +363,8 @@ def test_capsule_segments_compiled_equal_the_verifiers_coordinates_bit_for_bit(n
         (rng.uniform(lim[:, 0], lim[:, 1], (6, 2)), base, orient),
         (rng.uniform(lim[:, 0], lim[:, 1], (5, 6, 2)), base, orient),  # leading time axis
         (rng.uniform(lim[:, 0], lim[:, 1], (6, 9, 2)), base[:, None], orient[:, None]),  # paths per positioner
+        (rng.uniform(lim[:, 0], lim[:, 1], 2), base, orient),  # one configuration on every base
+        (rng.uniform(lim[:, 0], lim[:, 1], 2), base, 0.0),
     ):
         start, end = capsule_segments(inst, b, o, joints)
         sx, sy, ex, ey = capsule_coordinates(inst, b, o, joints)

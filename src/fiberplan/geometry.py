@@ -96,10 +96,10 @@ def capsule_segments(
     on_alpha, start_mm, end_mm, _, _ = capsule_tables(instrument)
     a = joints[..., 0] + orient
     ab = a + joints[..., 1]
-    lead = a.shape
+    lead = np.broadcast_shapes(a.shape, base_xy.shape[:-1])
     # numpy's cosines and sines (as capsule_coordinates takes them), then one compiled loop
     # instead of a dozen (..., N, C) temporaries: the same numbers.
-    trig = [np.ascontiguousarray(x, dtype=np.float64).reshape(-1) for x in (np.cos(a), np.sin(a), np.cos(ab), np.sin(ab))]
+    trig = [np.ascontiguousarray(np.broadcast_to(x, lead), dtype=np.float64).reshape(-1) for x in (np.cos(a), np.sin(a), np.cos(ab), np.sin(ab))]
     base = [np.ascontiguousarray(np.broadcast_to(base_xy[..., k], lead), dtype=np.float64).reshape(-1) for k in (0, 1)]
     lateral = _lateral(instrument)
     start_y, end_y = lateral if lateral is not None else (start_mm, end_mm)
