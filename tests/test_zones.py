@@ -280,14 +280,20 @@ def _clearances_numpy(instrument, start_i, end_i, start_j, end_j):
     return clear, dist, s, t, exact
 
 
-def test_zone_clearances_compiled_equal_numpy_bit_for_bit():
-    # Pairs from apart to deeply overlapping (a zone wholly inside a polygon among them), random arms.
-    rng = np.random.default_rng(5)
-    n = 3000
+def _random_pairs(rng, n):
+    """Capsule ends of ``n`` random MOONS pairs, from apart to deeply overlapping, random arms."""
     lim = MOONS.limits_rad
     base_j = rng.uniform(0.0, 1.2, n)[:, None] * PITCH * np.stack([np.cos(a := rng.uniform(0, 2 * np.pi, n)), np.sin(a)], -1)
     si, ei = capsule_segments(MOONS, np.zeros((n, 2)), np.zeros(n), rng.uniform(lim[:, 0], lim[:, 1], (n, 2)))
     sj, ej = capsule_segments(MOONS, base_j, rng.uniform(-np.pi, np.pi, n), rng.uniform(lim[:, 0], lim[:, 1], (n, 2)))
+    return si, ei, sj, ej
+
+
+def test_zone_clearances_compiled_equal_numpy_bit_for_bit():
+    # Pairs from apart to deeply overlapping (a zone wholly inside a polygon among them), random arms.
+    rng = np.random.default_rng(5)
+    n = 3000
+    si, ei, sj, ej = _random_pairs(rng, n)
     got, want = zones.clearances(MOONS, si, ei, sj, ej), _clearances_numpy(MOONS, si, ei, sj, ej)
     assert want[4].any() and (~want[4]).any()  # exact and bounded combinations among the samples
     assert (want[0] < -zones._tables(MOONS).pair_radius_sum.max()).any()  # and zones deep inside polygons
@@ -326,10 +332,7 @@ def _smallest_numpy(instrument, start_i, end_i, start_j, end_j, exact_below=zone
 def test_zone_smallest_compiled_equals_numpy_bit_for_bit(exact_below):
     rng = np.random.default_rng(6)
     n = 400
-    lim = MOONS.limits_rad
-    base_j = rng.uniform(0.0, 1.2, n)[:, None] * PITCH * np.stack([np.cos(a := rng.uniform(0, 2 * np.pi, n)), np.sin(a)], -1)
-    si, ei = capsule_segments(MOONS, np.zeros((n, 2)), np.zeros(n), rng.uniform(lim[:, 0], lim[:, 1], (n, 2)))
-    sj, ej = capsule_segments(MOONS, base_j, rng.uniform(-np.pi, np.pi, n), rng.uniform(lim[:, 0], lim[:, 1], (n, 2)))
+    si, ei, sj, ej = _random_pairs(rng, n)
     want = _smallest_numpy(MOONS, si, ei, sj, ej, exact_below)
     assert (want < -1.0).any() and (want >= exact_below).any()
     np.testing.assert_array_equal(zones.smallest(MOONS, si, ei, sj, ej, exact_below), want)

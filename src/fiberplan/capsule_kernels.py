@@ -45,13 +45,12 @@ import numpy as np
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _point_segment_sq(px: float, py: float, ax: float, ay: float, dx: float, dy: float, dd: float) -> float:
-    """Squared distance from a point to the segment ``a + u d`` (``u`` in [0, 1]) of positive
-    length ``dd = d . d``."""
-    u = _unit(((px - ax) * dx + (py - ay) * dy) / dd)
-    ex = px - (ax + u * dx)
-    ey = py - (ay + u * dy)
-    return ex * ex + ey * ey
+def _crosses(p0x: float, p0y: float, p1x: float, p1y: float, q0x: float, q0y: float, q1x: float, q1y: float) -> bool:
+    """Whether the segments cross properly: each one's end points strictly on both sides of the other."""
+    d1x, d1y, d2x, d2y = p1x - p0x, p1y - p0y, q1x - q0x, q1y - q0y
+    rx, ry = q0x - p0x, q0y - p0y
+    return ((d1x * ry - d1y * rx) * (d1x * (q1y - p0y) - d1y * (q1x - p0x)) < 0.0) and (
+        (d2x * (-ry) - d2y * (-rx)) * (d2x * (p1y - q0y) - d2y * (p1x - q0x)) < 0.0)
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -112,12 +111,8 @@ def _segment_pair(p0x: float, p0y: float, p1x: float, p1y: float, q0x: float, q0
     d_c, s_c = _point_segment(q1x, q1y, p0x, p0y, d1x, d1y, a_nz, a_safe)
     if d_c < d:
         d, ss, tt = d_c, s_c, 1.0
-    rx, ry = q0x - p0x, q0y - p0y
-    side_q0 = d1x * ry - d1y * rx
-    side_q1 = d1x * (q1y - p0y) - d1y * (q1x - p0x)
-    side_p0 = d2x * (-ry) - d2y * (-rx)
-    side_p1 = d2x * (p1y - q0y) - d2y * (p1x - q0x)
-    if side_q0 * side_q1 < 0.0 and side_p0 * side_p1 < 0.0:
+    if _crosses(p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y):
+        rx, ry = q0x - p0x, q0y - p0y
         cross = d1x * d2y - d1y * d2x
         ss = (rx * d2y - ry * d2x) / cross
         tt = (rx * d1y - ry * d1x) / cross
@@ -149,11 +144,7 @@ def _distance_only(p0x: float, p0y: float, p1x: float, p1y: float, q0x: float, q
         _minimum(_point_segment_sq_safe(q0x, q0y, p0x, p0y, d1x, d1y, a > 0.0, a_safe),
                  _point_segment_sq_safe(q1x, q1y, p0x, p0y, d1x, d1y, a > 0.0, a_safe)),
     )
-    rx, ry = q0x - p0x, q0y - p0y
-    if ((d1x * ry - d1y * rx) * (d1x * (q1y - p0y) - d1y * (q1x - p0x)) < 0.0) and (
-            (d2x * (-ry) - d2y * (-rx)) * (d2x * (p1y - q0y) - d2y * (p1x - q0x)) < 0.0):
-        return 0.0
-    return np.sqrt(sq)
+    return 0.0 if _crosses(p0x, p0y, p1x, p1y, q0x, q0y, q1x, q1y) else np.sqrt(sq)
 
 
 @numba.njit(cache=True, error_model="numpy", nogil=True)
@@ -229,28 +220,16 @@ def smallest_combo(p_start: np.ndarray, p_end: np.ndarray, p_index: np.ndarray, 
             q0x, q0y = q_start[v, b, 0], q_start[v, b, 1]
             if disc[a] and disc[b]:
                 dx, dy = p0x - q0x, p0y - q0y
-                sq = dx * dx + dy * dy
+                c = np.sqrt(dx * dx + dy * dy) - radii[k]
             elif disc[a] or disc[b]:
-                if disc[a]:  # p is the point, q the segment
+                if disc[a]:  # p is the point, q the segment (of positive length)
                     px, py, ax, ay, ex, ey = p0x, p0y, q0x, q0y, q_end[v, b, 0], q_end[v, b, 1]
                 else:
                     px, py, ax, ay, ex, ey = q0x, q0y, p0x, p0y, p_end[u, a, 0], p_end[u, a, 1]
                 dx, dy = ex - ax, ey - ay
-                sq = _point_segment_sq(px, py, ax, ay, dx, dy, dx * dx + dy * dy)
+                c = np.sqrt(_point_segment_sq_safe(px, py, ax, ay, dx, dy, True, dx * dx + dy * dy)) - radii[k]
             else:  # closest at an end point unless they cross
-                p1x, p1y, q1x, q1y = p_end[u, a, 0], p_end[u, a, 1], q_end[v, b, 0], q_end[v, b, 1]
-                d1x, d1y, d2x, d2y = p1x - p0x, p1y - p0y, q1x - q0x, q1y - q0y
-                d1, d2 = d1x * d1x + d1y * d1y, d2x * d2x + d2y * d2y
-                s_p0 = _point_segment_sq(p0x, p0y, q0x, q0y, d2x, d2y, d2)
-                s_p1 = _point_segment_sq(p1x, p1y, q0x, q0y, d2x, d2y, d2)
-                s_q0 = _point_segment_sq(q0x, q0y, p0x, p0y, d1x, d1y, d1)
-                s_q1 = _point_segment_sq(q1x, q1y, p0x, p0y, d1x, d1y, d1)
-                sq = _minimum(_minimum(s_p0, s_p1), _minimum(s_q0, s_q1))
-                rx, ry = q0x - p0x, q0y - p0y
-                if ((d1x * ry - d1y * rx) * (d1x * (q1y - p0y) - d1y * (q1x - p0x)) < 0.0) and (
-                        (d2x * (-ry) - d2y * (-rx)) * (d2x * (p1y - q0y) - d2y * (p1x - q0x)) < 0.0):
-                    sq = 0.0
-            c = np.sqrt(sq) - radii[k]
+                c = _distance_only(p0x, p0y, p_end[u, a, 0], p_end[u, a, 1], q0x, q0y, q_end[v, b, 0], q_end[v, b, 1]) - radii[k]
             best = c if k == 0 else _minimum(best, c)
         out[m] = best
 
