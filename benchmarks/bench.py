@@ -8,6 +8,7 @@ entry per group (instrument, size, scenario kind and options, planner, settings)
     python benchmarks/bench.py run benchmarks/studies/mpc_desi.toml [--workers 2]
     python benchmarks/bench.py table benchmarks/results/mpc_desi.json       # Markdown, for docs/results.md
     python benchmarks/bench.py compare --instrument moons -n 7 --seeds 30    # gaps to central -> results/central_moons_7.json (--name, --overwrite)
+    python benchmarks/bench.py gap --central results/central_sdss_7_30seeds.json --against results/X.json --name Y  # newer planners, stored reference
 
 Timing figures (``plan_wall_s``) are only comparable between runs on one quiet machine with the
 same ``--workers``; the scaling study runs with ``--workers 1``.
@@ -152,6 +153,57 @@ def cmd_compare(args: argparse.Namespace) -> None:
         print(f"seed {seed} ({done} of {len(seeds)}) -> {path}", flush=True)
 
 
+def _gap_rows(central: dict[str, Any], other: dict[str, Any]) -> list[dict[str, Any]]:
+    """Per seed and planner of ``other``: its makespan against the central reference's of
+    ``central`` on the same scenario (rows matched by scenario name; only references converged,
+    verified and complete count, as in ``compare``)."""
+    ref = {r["scenario"]: r for r in central["rows"] if r["planner"] == "central" and r.get("status") == "ok"
+           and r.get("clean") and r.get("success_rate") == 1.0}
+    out = []
+    for r in other["rows"]:
+        if r["planner"] == "central" or r.get("status") != "ok":
+            continue
+        c = ref.get(r["scenario"])
+        if c is not None and not np.isclose(c["lower_bound_s"], r["lower_bound_s"], rtol=1e-12, atol=0.0):
+            sys.exit(f"bench.py gap: {r['scenario']} is not the scenario the reference solved (lower bound {c['lower_bound_s']} s "
+                     f"there, {r['lower_bound_s']} s here): the scenario generator changed; solve the reference again")
+        complete = bool(r.get("clean")) and r.get("success_rate") == 1.0
+        gap = None if c is None or not complete else float(r["makespan_s"] / c["makespan_s"] - 1.0)
+        before = next((b for b in central["rows"] if b["scenario"] == r["scenario"] and b["planner"] == r["planner"]), None)
+        gap_before = (None if c is None or before is None or before.get("success_rate") != 1.0 or not before.get("clean")
+                      else float(before["makespan_s"] / c["makespan_s"] - 1.0))
+        out.append({"scenario": r["scenario"], "seed": r["seed"], "planner": r["planner"], "complete": complete,
+                    "makespan_s": r["makespan_s"], "central_makespan_s": None if c is None else c["makespan_s"],
+                    "gap_to_central": gap, "gap_to_central_before": gap_before, "plan_wall_s": r["plan_wall_s"]})
+    return out
+
+
+def cmd_gap(args: argparse.Namespace) -> None:
+    """Gaps of a newer run of the decentralised planners to a stored central reference."""
+    central = json.loads(Path(args.central).read_text())
+    other = json.loads(Path(args.against).read_text())
+    rows = _gap_rows(central, other)
+    summary: dict[str, Any] = {}
+    for planner in sorted({r["planner"] for r in rows}):
+        mine = [r for r in rows if r["planner"] == planner]
+        gaps = [r["gap_to_central"] for r in mine if r["gap_to_central"] is not None]
+        before = [r["gap_to_central_before"] for r in mine if r["gap_to_central_before"] is not None]
+        summary[planner] = {"seeds": len(mine), "complete": sum(r["complete"] for r in mine), "with_reference": len(gaps),
+                            "gap_median": _stat(gaps, np.median), "gap_p90": _stat(gaps, lambda a: np.percentile(a, 90)),
+                            "gap_max": _stat(gaps, np.max), "within_5_percent": sum(g <= 0.05 for g in gaps),
+                            "gap_median_before": _stat(before, np.median),
+                            "plan_wall_s_median": _stat([r["plan_wall_s"] for r in mine], np.median)}
+        s = summary[planner]
+        print(f"{planner}: {s['complete']} of {s['seeds']} complete; against {s['with_reference']} references: gap median "
+              f"{s['gap_median']:+.1%} (before {s['gap_median_before']:+.1%}), p90 {s['gap_p90']:+.1%}, max {s['gap_max']:+.1%}, "
+              f"within 5 %: {s['within_5_percent']}; plan wall median {s['plan_wall_s_median']:.2f} s")
+    command = " ".join(["python", "benchmarks/bench.py", *sys.argv[1:]])
+    path = write_summary(args.name, {"command": command, "central": str(args.central), "against": str(args.against),
+                                     "against_commit": other.get("machine", {}).get("fiberplan_commit"),
+                                     "summary": summary, "rows": rows})
+    print(f"wrote {path}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -172,8 +224,12 @@ def main() -> None:
     comp.add_argument("--energy-gap", action="store_true")
     comp.add_argument("--name", default=None, help="result file name (default central_<instrument>_<n>)")
     comp.add_argument("--overwrite", action="store_true", help="replace an existing result file of that name")
+    gap = sub.add_parser("gap", help="a newer compare's planners against a stored central reference (same scenarios)")
+    gap.add_argument("--central", type=Path, required=True, help="a compare result holding the central rows")
+    gap.add_argument("--against", type=Path, required=True, help="a compare result of the planners to measure")
+    gap.add_argument("--name", required=True, help="result file name")
     args = parser.parse_args()
-    {"run": cmd_run, "table": cmd_table, "compare": cmd_compare}[args.command](args)
+    {"run": cmd_run, "table": cmd_table, "compare": cmd_compare, "gap": cmd_gap}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -16,6 +16,10 @@ from fiberplan.planners.coordination.settings import REVERSE_LEG
 from fiberplan.planners.mpc import plan_mpc
 from fiberplan.scenario import scenario_from_dict
 
+OWN_ROUTES = {"route_prioritized_up_to": 0}
+"""The planner's own routes only: tests of the layer's other rules, on groups small enough for the
+prioritized schedule to be a candidate too."""
+
 
 def _check(scenario, result):
     report = fp.verify(scenario, result.trajectory)
@@ -136,10 +140,12 @@ def test_restarts_shorten_a_leg_with_stragglers_and_never_lengthen_one():
     sc = fp.make_scenario("moons-capsules", 61, "random", 0)
     fold = leg_scenario(sc, sc.target, np.broadcast_to(np.array(sc.instrument.datum_rad), (61, 2)), "fold")
     plain = fp.plan(fold, "mpc", {"route": "direct"})
-    once = fp.plan(fold, "mpc", {"route_restarts": False})  # a fold: the planner alone, through the layer
+    # (The prioritized schedule, a candidate on groups this small, is not what this test is about.)
+    own = {"route_prioritized_up_to": 0}
+    once = fp.plan(fold, "mpc", {"route_restarts": False} | own)  # a fold: the planner alone, through the layer
     assert once.stats["structure"] == "fold"
     np.testing.assert_array_equal(once.trajectory.joints, plain.trajectory.joints)
-    shortened = fp.plan(fold, "mpc")
+    shortened = fp.plan(fold, "mpc", own)
     assert shortened.stats["planner_runs"] > 1
     assert shortened.trajectory.duration_s < 0.9 * plain.trajectory.duration_s  # 37.85 s -> 19-20 s when measured
     summary = _check(fold, shortened)
@@ -318,12 +324,12 @@ def test_a_plan_complete_only_through_the_later_fallback_rounds_is_weighed_again
 
     monkeypatch.setattr(layer, "_strategies", slow_rescued)
     rescued = True
-    result = fp.plan(sc, "mpc")
+    result = fp.plan(sc, "mpc", OWN_ROUTES)
     _check(sc, result)
     assert [c["strategy"] for c in result.stats["candidates"]] == ["direct", "fallback planner"]
     assert result.stats["chosen"] == "fallback planner"
     rescued = False  # a plan complete by the earlier rules is kept as it is
-    result = fp.plan(sc, "mpc")
+    result = fp.plan(sc, "mpc", OWN_ROUTES)
     assert [c["strategy"] for c in result.stats["candidates"]] == ["direct"]
 
 
@@ -343,7 +349,7 @@ def test_when_every_route_leaves_positioners_short_the_fallback_planner_plans_th
 
     monkeypatch.setattr(layer, "_strategies", nobody_moves_at_first)
     sc = fp.make_scenario("desi", 19, "random", 1)
-    result = fp.plan(sc, "mpc")
+    result = fp.plan(sc, "mpc", OWN_ROUTES)
     summary = _check(sc, result)
     assert summary["reached"] == 19
     assert result.stats["chosen"] == "fallback planner"
@@ -351,7 +357,7 @@ def test_when_every_route_leaves_positioners_short_the_fallback_planner_plans_th
     assert any("planned by the fallback planner dnf (" in w for w in result.warnings)
     # Without a fallback planner nothing else is tried.
     calls.clear()
-    alone = fp.plan(sc, "mpc", {"route_fallback_planner": None})
+    alone = fp.plan(sc, "mpc", {"route_fallback_planner": None} | OWN_ROUTES)
     assert alone.stats["chosen"] == "direct" and fp.summarize(alone)["reached"] == 0
 
 
@@ -547,3 +553,49 @@ def test_route_tails_off_plans_no_backward_tail(monkeypatch):
     assert not called
     legs.complete_leg(leg, plan_leg, 2, restarts=0.05, tails=True)
     assert called
+
+
+def test_small_groups_whose_moves_cross_take_the_prioritized_schedule_where_it_is_shorter():
+    # SDSS 7 hard seed 3: the mpc's routes go through the datum (about 1.9 x the bound); the
+    # prioritized schedule brings all 7 home at about 1.13 x.
+    from fiberplan.studies import hard_scenario
+
+    sc = hard_scenario("sdss", 7, 3)
+    auto = fp.plan(sc, "mpc")
+    summary = _check(sc, auto)
+    assert auto.stats["chosen"] == "prioritized" and summary["reached"] == 7
+    own = fp.plan(sc, "mpc", {"route_prioritized_up_to": 0})
+    assert "prioritized" not in {c["strategy"] for c in own.stats["candidates"]}
+    assert summary["makespan_s"] < 0.8 * fp.summarize(own)["makespan_s"]
+    # Planned on the run's own time grid.
+    np.testing.assert_allclose(np.diff(auto.trajectory.times), auto.settings["dt_s"])
+    # Above the limit, not tried.
+    limited = fp.plan(sc, "mpc", {"route_prioritized_up_to": 6})
+    np.testing.assert_array_equal(limited.trajectory.joints, own.trajectory.joints)
+
+
+def test_a_prioritized_plan_left_short_is_completed_by_the_planner_from_its_last_arrival():
+    from fiberplan.planners.coordination import layer
+    from fiberplan.studies import hard_scenario
+
+    sc = hard_scenario("sdss", 7, 1)  # the schedule places 5 of 7 at every slack tried
+    settings = fp.make_settings("mpc", sc, {})
+    opts = layer._options(settings, sc)
+
+    def plan_leg(leg, time_limit_s=None, use_fallback=False, progress=None):  # as the layer's (planners._plan_with)
+        limit = {} if time_limit_s is None else {"time_limit_s": time_limit_s}
+        return fp.plan(leg, "dnf" if use_fallback else "mpc", {"route": "direct"} | limit, progress)
+
+    alone, completed = layer._prioritized(sc, plan_leg, opts, None)
+    assert alone is None and completed is not None
+    head, tail = completed
+    np.testing.assert_array_equal(head.joints[-1], tail.joints[0])
+    traj = layer._join(sc, completed, settings.dt_s)
+    report = fp.verify(sc, traj)
+    assert report.ok
+    assert np.all(traj.joints[-1] == sc.target)
+    # The short ones (and only positioners still away) move in the completion.
+    away = ~np.all(head.joints[-1] == sc.target, axis=1)
+    assert set(tail.moved) == set(np.flatnonzero(away).tolist()) and 0 < len(tail.moved) < 7
+    # A completion that could not end before a given time is not planned.
+    assert layer._prioritized(sc, plan_leg, opts, 0.5) == (None, None)

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from fiberplan.errors import PlannerError
 from fiberplan.geometry import min_pair_clearance
 from fiberplan.metrics import arrival_times, reached_mask
 from fiberplan.outcomes import outcome_labels
@@ -39,6 +40,7 @@ class _Options:
     dt_s: float  # the planner's control step
     rest_steps: int = 0  # steps a joint holds still before turning back where runs meet (the instrument's speed ramp; governed planners)
     tails: bool = True  # route_tails
+    prioritized_up_to: int = 0  # route_prioritized_up_to
 
     @property
     def solo(self) -> tuple[float, float]:
@@ -271,6 +273,69 @@ def _fix_up(scenario: Scenario, direct: _Piece, plan_leg: PlanLeg, opts: _Option
     return None
 
 
+PRIORITIZED_SLACKS = (1.2, 1.5, 2.0)
+"""The ``prioritized`` planner's ``slack`` values tried in turn (every scheduled move ends by this
+many times the longest): the first that brings everyone home is kept. SDSS 7 hard seeds 0-29:
+complete on 12, 15 and 16 seeds at 1.2, 1.5 and 2.0 alone."""
+
+
+def _prioritized(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, beat_s: float | None) -> tuple[list[_Piece] | None, list[_Piece] | None]:
+    """The ``prioritized`` planner's plan of the whole move (reference 003's prioritized
+    state-time schedule, executed under the safety layer; each of :data:`PRIORITIZED_SLACKS` in
+    turn until one brings everyone home), or else its plan that brought most home, until its last
+    arrival, completed by this planner from there (the positioners it left short, and any
+    neighbour in their way): ``(alone, completed)``, each ``None`` if not found. The completion is
+    stopped once it could no longer end before ``beat_s`` (the best candidate so far, s).
+
+    Where a group's moves cross, the schedule's timed paths through each positioner's joint grid
+    find crossing motions near the bound that the reactive planners miss (SDSS 7 hard groups: they
+    go through the datum at about 1.8 x the bound where the central reference finds 1.0 x); on a
+    larger field it paid too little for its planning time (MOONS 61: ``formulations/coordination.md``), hence
+    ``route_prioritized_up_to``.
+    Planned on the run's time grid, with its safety margin (if it has one)."""
+    from fiberplan.planners import plan
+
+    t0 = time.perf_counter()
+    movers = np.flatnonzero(scenario.has_target).tolist()
+    best: tuple[int, np.ndarray, np.ndarray] | None = None  # (reached, joints, reached mask) of the plan that brought most home
+    for slack in PRIORITIZED_SLACKS:
+        overrides: dict[str, Any] = {"dt_s": opts.dt_s, "slack": slack}
+        if opts.floor_mm > 0.0:
+            overrides["safety_margin_mm"] = opts.floor_mm
+        try:
+            result = plan(scenario, "prioritized", overrides)
+        except PlannerError:  # (its step budget, say): one candidate fewer
+            continue
+        joints = result.trajectory.joints
+        reached = reached_mask(scenario, Trajectory(np.arange(len(joints)), joints))
+        if not (scenario.has_target & ~reached).any():
+            return [_Piece(f"prioritized (reference 003's schedule, slack {slack:g})", joints, movers, 1, time.perf_counter() - t0)], None
+        if best is None or int(reached.sum()) > best[0]:
+            best = (int(reached.sum()), joints, reached)
+    if best is None:
+        return None, None
+    _, joints, reached = best
+    wall = time.perf_counter() - t0
+    arrive = arrival_times(scenario, Trajectory(np.arange(len(joints)), joints))
+    cut = int(np.nanmax(arrive[reached])) if reached.any() else 0
+    limit = None if beat_s is None else beat_s - cut * opts.dt_s
+    if limit is not None and limit <= 0.0:
+        return None, None
+    state = joints[cut]
+    home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)
+    rest = leg_scenario(scenario, state, np.where(scenario.locked[:, None], state, home), "prioritized-rest")
+    t1 = time.perf_counter()
+    leg = complete_leg(rest, plan_leg, opts.attempts, time_limit_s=limit, strict=False, restarts=opts.restarts, solo=opts.solo,
+                       tails=opts.tails)
+    if not leg.complete:
+        return None, None
+    head = _Piece("prioritized (reference 003's schedule, until its last arrival)", joints[: cut + 1], movers, 1, wall)
+    away = np.flatnonzero(~np.all(state == home, axis=1) & ~scenario.locked).tolist()
+    tail = _Piece("direct from there (the positioners it left short)", leg.joints, away, leg.runs, time.perf_counter() - t1,
+                  first_samples=leg.first_samples, rescued=leg.rescued)
+    return None, [head, tail]
+
+
 # ---------------------------------------------------------------------------- the layer
 def _is_at_datum(scenario: Scenario, joints: np.ndarray) -> bool:
     free = ~scenario.locked
@@ -292,7 +357,8 @@ def _options(settings: Any, scenario: Scenario) -> _Options:
     # governor): the others' plans turn back at every step where they wait, and are left to the discretiser.
     rest = 0 if ramp is None or not getattr(settings, "motor_limits", False) else math.ceil(ramp / settings.dt_s - 1e-9)
     return _Options(settings.route_attempts, settings.dt_s if settings.route_restarts else None, settings.route_overlap,
-                    float(getattr(settings, "safety_margin_mm", 0.0)), step, settings.dt_s, rest, settings.route_tails)
+                    float(getattr(settings, "safety_margin_mm", 0.0)), step, settings.dt_s, rest, settings.route_tails,
+                    int(getattr(settings, "route_prioritized_up_to", 0)))
 
 
 def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Options,
@@ -400,6 +466,14 @@ def coordinate(
 
     opts = _options(settings, scenario)
     structure = _strategies(scenario, route, recorded, opts, consider)
+    if route == "auto" and scenario.n_positioners <= opts.prioritized_up_to and not opts.rest_steps and not _WHOLE_FALLBACK.get():
+        # (Not where the run keeps speed ramps between its runs: the schedule's moves start and stop at full speed.)
+        complete = [scores[name][1] for name in candidates if scores[name][0] == 0]
+        alone, completed = _prioritized(scenario, recorded, opts, min(complete) if complete else None)
+        if alone is not None:
+            consider("prioritized", alone)
+        elif completed is not None:
+            consider("prioritized, completed", completed)
 
     def short() -> bool:
         return not candidates or min(scores[name][0] for name in candidates) > 0
