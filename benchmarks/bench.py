@@ -157,7 +157,8 @@ def _gap_rows(central: dict[str, Any], other: dict[str, Any]) -> list[dict[str, 
     """Per seed and planner of ``other``: its makespan against the central reference's of
     ``central`` on the same scenario (rows matched by scenario name; only references converged,
     verified and complete count, as in ``compare``)."""
-    ref = {r["scenario"]: r for r in central["rows"] if r["planner"] == "central" and r.get("status") == "ok"
+    # (Files written before the rows had a status hold only finished runs.)
+    ref = {r["scenario"]: r for r in central["rows"] if r["planner"] == "central" and r.get("status") in ("ok", None)
            and r.get("clean") and r.get("success_rate") == 1.0}
     out = []
     for r in other["rows"]:
@@ -194,8 +195,12 @@ def cmd_gap(args: argparse.Namespace) -> None:
                             "gap_median_before": _stat(before, np.median),
                             "plan_wall_s_median": _stat([r["plan_wall_s"] for r in mine], np.median)}
         s = summary[planner]
+
+        def pct(v: float | None) -> str:
+            return "n/a" if v is None else f"{v:+.1%}"
+
         print(f"{planner}: {s['complete']} of {s['seeds']} complete; against {s['with_reference']} references: gap median "
-              f"{s['gap_median']:+.1%} (before {s['gap_median_before']:+.1%}), p90 {s['gap_p90']:+.1%}, max {s['gap_max']:+.1%}, "
+              f"{pct(s['gap_median'])} (before {pct(s['gap_median_before'])}), p90 {pct(s['gap_p90'])}, max {pct(s['gap_max'])}, "
               f"within 5 %: {s['within_5_percent']}; plan wall median {s['plan_wall_s_median']:.2f} s")
     command = " ".join(["python", "benchmarks/bench.py", *sys.argv[1:]])
     path = write_summary(args.name, {"command": command, "central": str(args.central), "against": str(args.against),

@@ -574,7 +574,7 @@ def test_small_groups_whose_moves_cross_take_the_prioritized_schedule_where_it_i
     np.testing.assert_array_equal(limited.trajectory.joints, own.trajectory.joints)
 
 
-def test_a_prioritized_plan_left_short_is_completed_by_the_planner_from_its_last_arrival():
+def test_a_prioritized_plan_left_short_is_completed_by_the_planner_and_through_a_retraction():
     from fiberplan.planners.coordination import layer
     from fiberplan.studies import hard_scenario
 
@@ -586,16 +586,22 @@ def test_a_prioritized_plan_left_short_is_completed_by_the_planner_from_its_last
         limit = {} if time_limit_s is None else {"time_limit_s": time_limit_s}
         return fp.plan(leg, "dnf" if use_fallback else "mpc", {"route": "direct"} | limit, progress)
 
-    alone, completed = layer._prioritized(sc, plan_leg, opts, None)
-    assert alone is None and completed is not None
-    head, tail = completed
+    found = layer._prioritized(sc, plan_leg, opts, None)
+    assert set(found) == {"prioritized, completed", "prioritized through a retraction"}
+    for name, pieces in found.items():
+        traj = layer._join(sc, pieces, settings.dt_s)
+        assert fp.verify(sc, traj).ok, name
+        np.testing.assert_allclose(traj.joints[-1], sc.target, rtol=0.0, atol=1e-12)
+    head, tail = found["prioritized, completed"]
     np.testing.assert_array_equal(head.joints[-1], tail.joints[0])
-    traj = layer._join(sc, completed, settings.dt_s)
-    report = fp.verify(sc, traj)
-    assert report.ok
-    assert np.all(traj.joints[-1] == sc.target)
     # The short ones (and only positioners still away) move in the completion.
     away = ~np.all(head.joints[-1] == sc.target, axis=1)
     assert set(tail.moved) == set(np.flatnonzero(away).tolist()) and 0 < len(tail.moved) < 7
+    # Through the retraction: the two positioners left short pass through the datum's beta, the
+    # others never retract (their beta stays away from it).
+    (retraction,) = found["prioritized through a retraction"]
+    beta = sc.instrument.datum_rad[1]
+    at_beta = np.any(np.isclose(retraction.joints[:, :, 1], beta, rtol=0.0, atol=1e-9), axis=0)
+    assert int(at_beta.sum()) == 2 and "retraction of 2" in retraction.name
     # A completion that could not end before a given time is not planned.
-    assert layer._prioritized(sc, plan_leg, opts, 0.5) == (None, None)
+    assert "prioritized, completed" not in layer._prioritized(sc, plan_leg, opts, 0.5)

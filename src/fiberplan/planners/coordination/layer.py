@@ -16,7 +16,7 @@ from fiberplan.geometry import min_pair_clearance
 from fiberplan.metrics import arrival_times, reached_mask
 from fiberplan.outcomes import outcome_labels
 from fiberplan.planners.coordination.fork import CHILD_RUNS, RUN_LOG, both
-from fiberplan.planners.coordination.legs import Leg, PlanLeg, _park_candidates, complete_leg, leg_scenario
+from fiberplan.planners.coordination.legs import Leg, PlanLeg, _park_candidates, complete_leg, exactly_at, leg_scenario
 from fiberplan.planners.coordination.retime import overlap_legs, ramp_rests
 from fiberplan.planners.coordination.settings import REVERSE_LEG, UNFOLD_REVERSED_LEG
 from fiberplan.profiles import chatters
@@ -279,61 +279,117 @@ many times the longest): the first that brings everyone home is kept. SDSS 7 har
 complete on 12, 15 and 16 seeds at 1.2, 1.5 and 2.0 alone."""
 
 
-def _prioritized(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, beat_s: float | None) -> tuple[list[_Piece] | None, list[_Piece] | None]:
-    """The ``prioritized`` planner's plan of the whole move (reference 003's prioritized
-    state-time schedule, executed under the safety layer; each of :data:`PRIORITIZED_SLACKS` in
-    turn until one brings everyone home), or else its plan that brought most home, until its last
-    arrival, completed by this planner from there (the positioners it left short, and any
-    neighbour in their way): ``(alone, completed)``, each ``None`` if not found. The completion is
-    stopped once it could no longer end before ``beat_s`` (the best candidate so far, s).
-
-    Where a group's moves cross, the schedule's timed paths through each positioner's joint grid
-    find crossing motions near the bound that the reactive planners miss (SDSS 7 hard groups: they
-    go through the datum at about 1.8 x the bound where the central reference finds 1.0 x); on a
-    larger field it paid too little for its planning time (MOONS 61: ``formulations/coordination.md``), hence
-    ``route_prioritized_up_to``.
-    Planned on the run's time grid, with its safety margin (if it has one)."""
+def _scheduled(leg: Scenario, opts: _Options) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """The ``prioritized`` planner's plan of ``leg`` on the run's time grid (and with its safety
+    margin, if it has one), each of :data:`PRIORITIZED_SLACKS` in turn until one brings everyone
+    home: ``(joints, reached, slack)`` of that plan, else of the one that brought most home;
+    ``None`` if none could be planned."""
     from fiberplan.planners import plan
 
-    t0 = time.perf_counter()
-    movers = np.flatnonzero(scenario.has_target).tolist()
-    best: tuple[int, np.ndarray, np.ndarray] | None = None  # (reached, joints, reached mask) of the plan that brought most home
+    best: tuple[np.ndarray, np.ndarray, float] | None = None
     for slack in PRIORITIZED_SLACKS:
         overrides: dict[str, Any] = {"dt_s": opts.dt_s, "slack": slack}
         if opts.floor_mm > 0.0:
             overrides["safety_margin_mm"] = opts.floor_mm
         try:
-            result = plan(scenario, "prioritized", overrides)
-        except PlannerError:  # (its step budget, say): one candidate fewer
+            result = plan(leg, "prioritized", overrides)
+        except PlannerError:  # (its step budget, say): one try fewer
             continue
         joints = result.trajectory.joints
-        reached = reached_mask(scenario, Trajectory(np.arange(len(joints)), joints))
-        if not (scenario.has_target & ~reached).any():
-            return [_Piece(f"prioritized (reference 003's schedule, slack {slack:g})", joints, movers, 1, time.perf_counter() - t0)], None
-        if best is None or int(reached.sum()) > best[0]:
-            best = (int(reached.sum()), joints, reached)
-    if best is None:
-        return None, None
-    _, joints, reached = best
+        reached = reached_mask(leg, Trajectory(np.arange(len(joints)), joints))
+        if best is None or int(reached.sum()) > int(best[1].sum()):
+            best = (joints, reached, slack)
+        if not (leg.has_target & ~reached).any():
+            break
+    return best
+
+
+def _prioritized(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, beat_s: float | None) -> dict[str, list[_Piece]]:
+    """Candidates from the ``prioritized`` planner's schedule (reference 003's prioritized
+    state-time planning, executed under the safety layer; :func:`_scheduled`), by name:
+
+    - ``prioritized``: its plan of the whole move, if it brings everyone home; else
+    - ``prioritized, completed``: its plan until its last arrival, completed by this planner
+      from there (the positioners it left short, and any neighbour in their way), stopped once it
+      could no longer end before ``beat_s`` (the best candidate so far, s);
+    - ``prioritized through a retraction``: two legs of the schedule through the configuration in
+      which the positioners it left short sit retracted (the datum's beta) at their target's
+      alpha (else at their start's), everyone else on the targets: ``start -> that``, then
+      ``(targets -> that)`` reversed, overlapped where clear (:func:`overlap_legs`). The
+      issue's partial retract: only those the plan cannot bring home retract, and only their
+      beta.
+
+    Where a group's moves cross, the schedule's timed paths through each positioner's joint grid
+    find crossing motions near the bound that the reactive planners miss (SDSS 7 hard groups: they
+    go through the datum at about 1.8 x the bound where the central reference finds 1.0 x); on a
+    larger field it paid too little for its planning time (MOONS 61: ``formulations/coordination.md``), hence
+    ``route_prioritized_up_to``."""
+    t0 = time.perf_counter()
+    movers = np.flatnonzero(scenario.has_target).tolist()
+    found = _scheduled(scenario, opts)
+    if found is None:
+        return {}
+    joints, reached, slack = found
+    if not (scenario.has_target & ~reached).any():
+        return {"prioritized": [_Piece(f"prioritized (reference 003's schedule, slack {slack:g})", joints, movers, 1,
+                                       time.perf_counter() - t0)]}
+    out: dict[str, list[_Piece]] = {}
+    home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)
+    short = scenario.has_target & ~reached
+    retracted = _through_retraction(scenario, opts, home, short)
+    if retracted is not None:
+        out["prioritized through a retraction"] = retracted
     wall = time.perf_counter() - t0
     arrive = arrival_times(scenario, Trajectory(np.arange(len(joints)), joints))
     cut = int(np.nanmax(arrive[reached])) if reached.any() else 0
     limit = None if beat_s is None else beat_s - cut * opts.dt_s
     if limit is not None and limit <= 0.0:
-        return None, None
+        return out
     state = joints[cut]
-    home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)
     rest = leg_scenario(scenario, state, np.where(scenario.locked[:, None], state, home), "prioritized-rest")
     t1 = time.perf_counter()
     leg = complete_leg(rest, plan_leg, opts.attempts, time_limit_s=limit, strict=False, restarts=opts.restarts, solo=opts.solo,
                        tails=opts.tails)
-    if not leg.complete:
-        return None, None
-    head = _Piece("prioritized (reference 003's schedule, until its last arrival)", joints[: cut + 1], movers, 1, wall)
-    away = np.flatnonzero(~np.all(state == home, axis=1) & ~scenario.locked).tolist()
-    tail = _Piece("direct from there (the positioners it left short)", leg.joints, away, leg.runs, time.perf_counter() - t1,
-                  first_samples=leg.first_samples, rescued=leg.rescued)
-    return None, [head, tail]
+    if leg.complete:
+        head = _Piece("prioritized (reference 003's schedule, until its last arrival)", joints[: cut + 1], movers, 1, wall)
+        away = np.flatnonzero(~np.all(state == home, axis=1) & ~scenario.locked).tolist()
+        out["prioritized, completed"] = [head, _Piece("direct from there (the positioners it left short)", leg.joints, away, leg.runs,
+                                                      time.perf_counter() - t1, first_samples=leg.first_samples,
+                                                      rescued=leg.rescued)]
+    return out
+
+
+def _through_retraction(scenario: Scenario, opts: _Options, home: np.ndarray, short: np.ndarray) -> list[_Piece] | None:
+    """The ``prioritized through a retraction`` candidate of :func:`_prioritized`: of the two
+    retracted configurations (at the target's alpha, at the start's), the shorter whole; ``None``
+    if neither is clear or every one has a leg that leaves anyone short."""
+    t0 = time.perf_counter()
+    beta = _datum(scenario)[:, 1]
+    best: tuple[np.ndarray, int, str] | None = None
+    for alpha_of, where in ((scenario.target, "target"), (scenario.start, "start")):
+        mid = home.copy()
+        mid[short, 0] = alpha_of[short, 0]
+        mid[short, 1] = beta[short]
+        if len(scenario.pairs) and float(np.min(min_pair_clearance(scenario.instrument, scenario.base_xy, scenario.orient, mid,
+                                                                   scenario.pairs))) <= opts.floor_mm:
+            continue
+        first = leg_scenario(scenario, scenario.start, mid, "prioritized-retract")
+        back = leg_scenario(scenario, home, mid, "prioritized-retract-reversed")
+        one, two = _scheduled(first, opts), _scheduled(back, opts)
+        if one is None or two is None or (first.has_target & ~one[1]).any() or (back.has_target & ~two[1]).any():
+            continue
+        j1 = exactly_at(one[0], first.target, mid)
+        j2 = exactly_at(two[0], back.target, mid)[::-1]
+        joints, shift = (overlap_legs(scenario, j1, j2, opts.floor_mm, opts.coarse_steps) if opts.overlap
+                         else (np.concatenate([j1, j2[1:]]), 0))
+        if best is None or len(joints) < len(best[0]):
+            best = (joints, shift, where)
+    if best is None:
+        return None
+    joints, shift, where = best
+    return [_Piece(f"prioritized through a retraction of {int(short.sum())} (beta at the datum's, alpha at the {where}'s), "
+                   f"overlapped by {shift} steps", joints, np.flatnonzero(scenario.has_target).tolist(), 2,
+                   time.perf_counter() - t0, overlap_steps=shift)]
 
 
 # ---------------------------------------------------------------------------- the layer
@@ -469,11 +525,8 @@ def coordinate(
     if route == "auto" and scenario.n_positioners <= opts.prioritized_up_to and not opts.rest_steps and not _WHOLE_FALLBACK.get():
         # (Not where the run keeps speed ramps between its runs: the schedule's moves start and stop at full speed.)
         complete = [scores[name][1] for name in candidates if scores[name][0] == 0]
-        alone, completed = _prioritized(scenario, recorded, opts, min(complete) if complete else None)
-        if alone is not None:
-            consider("prioritized", alone)
-        elif completed is not None:
-            consider("prioritized, completed", completed)
+        for name, pieces in _prioritized(scenario, recorded, opts, min(complete) if complete else None).items():
+            consider(name, pieces)
 
     def short() -> bool:
         return not candidates or min(scores[name][0] for name in candidates) > 0
