@@ -605,3 +605,23 @@ def test_a_prioritized_plan_left_short_is_completed_by_the_planner_and_through_a
     assert int(at_beta.sum()) == 2 and "retraction of 2" in retraction.name
     # A completion that could not end before a given time is not planned.
     assert "prioritized, completed" not in layer._prioritized(sc, plan_leg, opts, 0.5)
+
+
+def test_where_retracting_the_short_ones_is_not_enough_their_neighbours_retract_too():
+    from fiberplan.planners.coordination import layer
+    from fiberplan.studies import hard_scenario
+
+    sc = hard_scenario("sdss", 7, 8)  # 2 left short; retracting those 2 alone leaves a leg short
+    settings = fp.make_settings("mpc", sc, {})
+    opts = layer._options(settings, sc)
+    home = sc.target
+    joints, reached, _ = layer._scheduled(sc, opts)
+    short = ~reached
+    assert int(short.sum()) == 2
+    assert layer._through_retraction(sc, opts, home, short) is None
+    found = layer._prioritized(sc, lambda *a, **k: None, opts, 0.0)  # (no completion: it could not beat 0 s)
+    (retraction,) = found["prioritized through a retraction"]
+    assert "retraction of 7" in retraction.name
+    traj = layer._join(sc, [retraction], settings.dt_s)
+    assert fp.verify(sc, traj).ok
+    np.testing.assert_allclose(traj.joints[-1], sc.target, rtol=0.0, atol=1e-12)
