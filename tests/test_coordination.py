@@ -574,37 +574,28 @@ def test_small_groups_whose_moves_cross_take_the_prioritized_schedule_where_it_i
     np.testing.assert_array_equal(limited.trajectory.joints, own.trajectory.joints)
 
 
-def test_a_prioritized_plan_left_short_is_completed_by_the_planner_and_through_a_retraction():
+def test_a_prioritized_plan_left_short_goes_through_a_retraction_of_the_short_ones():
     from fiberplan.planners.coordination import layer
     from fiberplan.studies import hard_scenario
 
     sc = hard_scenario("sdss", 7, 1)  # the schedule places 5 of 7 at every slack tried
     settings = fp.make_settings("mpc", sc, {})
     opts = layer._options(settings, sc)
-
-    def plan_leg(leg, time_limit_s=None, use_fallback=False, progress=None):  # as the layer's (planners._plan_with)
-        limit = {} if time_limit_s is None else {"time_limit_s": time_limit_s}
-        return fp.plan(leg, "dnf" if use_fallback else "mpc", {"route": "direct"} | limit, progress)
-
-    found = layer._prioritized(sc, plan_leg, opts, None)
-    assert set(found) == {"prioritized, completed", "prioritized through a retraction"}
-    for name, pieces in found.items():
-        traj = layer._join(sc, pieces, settings.dt_s)
-        assert fp.verify(sc, traj).ok, name
-        np.testing.assert_allclose(traj.joints[-1], sc.target, rtol=0.0, atol=1e-12)
-    head, tail = found["prioritized, completed"]
-    np.testing.assert_array_equal(head.joints[-1], tail.joints[0])
-    # The short ones (and only positioners still away) move in the completion.
-    away = ~np.all(head.joints[-1] == sc.target, axis=1)
-    assert set(tail.moved) == set(np.flatnonzero(away).tolist()) and 0 < len(tail.moved) < 7
-    # Through the retraction: the two positioners left short pass through the datum's beta, the
-    # others never retract (their beta stays away from it).
+    found = layer._prioritized(sc, opts)
     (retraction,) = found["prioritized through a retraction"]
+    assert set(found) == {"prioritized through a retraction"}
+    traj = layer._join(sc, [retraction], settings.dt_s)
+    assert fp.verify(sc, traj).ok
+    np.testing.assert_allclose(traj.joints[-1], sc.target, rtol=0.0, atol=1e-12)
+    # The two positioners left short pass through the datum's beta; the others never retract.
     beta = sc.instrument.datum_rad[1]
     at_beta = np.any(np.isclose(retraction.joints[:, :, 1], beta, rtol=0.0, atol=1e-9), axis=0)
     assert int(at_beta.sum()) == 2 and "retraction of 2" in retraction.name
-    # A completion that could not end before a given time is not planned.
-    assert "prioritized, completed" not in layer._prioritized(sc, plan_leg, opts, 0.5)
+    # Through the layer: the shortest candidate, shorter than the two legs through the datum.
+    auto = fp.plan(sc, "mpc")
+    assert auto.stats["chosen"] == "prioritized through a retraction"
+    via = {c["strategy"]: c for c in auto.stats["candidates"]}["via_datum"]
+    assert fp.summarize(auto)["makespan_s"] < via["makespan_s"]
 
 
 def test_where_retracting_the_short_ones_is_not_enough_their_neighbours_retract_too():
@@ -615,11 +606,11 @@ def test_where_retracting_the_short_ones_is_not_enough_their_neighbours_retract_
     settings = fp.make_settings("mpc", sc, {})
     opts = layer._options(settings, sc)
     home = sc.target
-    joints, reached, _ = layer._scheduled(sc, opts)
+    _, reached, _ = layer._scheduled(sc, opts)
     short = ~reached
     assert int(short.sum()) == 2
     assert layer._through_retraction(sc, opts, home, short) is None
-    found = layer._prioritized(sc, lambda *a, **k: None, opts, 0.0)  # (no completion: it could not beat 0 s)
+    found = layer._prioritized(sc, opts)
     (retraction,) = found["prioritized through a retraction"]
     assert "retraction of 7" in retraction.name
     traj = layer._join(sc, [retraction], settings.dt_s)

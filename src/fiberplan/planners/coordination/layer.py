@@ -311,14 +311,11 @@ def _scheduled(leg: Scenario, opts: _Options) -> tuple[np.ndarray, np.ndarray, f
     return best
 
 
-def _prioritized(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, beat_s: float | None) -> dict[str, list[_Piece]]:
+def _prioritized(scenario: Scenario, opts: _Options) -> dict[str, list[_Piece]]:
     """Candidates from the ``prioritized`` planner's schedule (reference 003's prioritized
     state-time planning, executed under the safety layer; :func:`_scheduled`), by name:
 
     - ``prioritized``: its plan of the whole move, if it brings everyone home; else
-    - ``prioritized, completed``: its plan until its last arrival, completed by this planner
-      from there (the positioners it left short, and any neighbour in their way), stopped once it
-      could no longer end before ``beat_s`` (the best candidate so far, s);
     - ``prioritized through a retraction``: two legs of the schedule through the configuration in
       which the positioners it left short sit retracted (the datum's beta) at their target's
       alpha (else at their start's), everyone else on the targets: ``start -> that``, then
@@ -331,25 +328,23 @@ def _prioritized(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, beat_s: 
     find crossing motions near the bound that the reactive planners miss (SDSS 7 hard groups: they
     go through the datum at about 1.8 x the bound where the central reference finds 1.0 x); on a
     larger field it paid too little for its planning time (MOONS 61: ``formulations/coordination.md``), hence
-    ``route_prioritized_up_to``."""
+    ``route_prioritized_up_to``. (The schedule's plan until its last arrival completed by the
+    run's planner was a third candidate: on SDSS 7 hard seeds 0-29 it was never the shortest, and
+    on MOONS 7 hard seed 9 under MOONS' zones it took 12 s of the 27 s of planning.)"""
     t0 = time.perf_counter()
-    movers = np.flatnonzero(scenario.has_target).tolist()
     found = _scheduled(scenario, opts)
     if found is None:
         return {}
     joints, reached, slack = found
     if not (scenario.has_target & ~reached).any():
-        return {"prioritized": [_Piece(f"prioritized (reference 003's schedule, slack {slack:g})", joints, movers, 1,
-                                       time.perf_counter() - t0)]}
-    out: dict[str, list[_Piece]] = {}
+        return {"prioritized": [_Piece(f"prioritized (reference 003's schedule, slack {slack:g})", joints,
+                                       np.flatnonzero(scenario.has_target).tolist(), 1, time.perf_counter() - t0)]}
     home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)
-    short = scenario.has_target & ~reached
-    retract = short
+    retract = scenario.has_target & ~reached
     for _ in range(RETRACTION_ROUNDS):
         retracted = _through_retraction(scenario, opts, home, retract)
         if retracted is not None:
-            out["prioritized through a retraction"] = retracted
-            break
+            return {"prioritized through a retraction": retracted}
         # Their neighbours retract too, next round.
         pairs = scenario.pairs
         near = np.unique(pairs[retract[pairs[:, 0]] | retract[pairs[:, 1]]].ravel()) if len(pairs) else np.zeros(0, dtype=int)
@@ -359,24 +354,7 @@ def _prioritized(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, beat_s: 
         if np.array_equal(grown, retract):
             break
         retract = grown
-    wall = time.perf_counter() - t0
-    arrive = arrival_times(scenario, Trajectory(np.arange(len(joints)), joints))
-    cut = int(np.nanmax(arrive[reached])) if reached.any() else 0
-    limit = None if beat_s is None else beat_s - cut * opts.dt_s
-    if limit is not None and limit <= 0.0:
-        return out
-    state = joints[cut]
-    rest = leg_scenario(scenario, state, np.where(scenario.locked[:, None], state, home), "prioritized-rest")
-    t1 = time.perf_counter()
-    leg = complete_leg(rest, plan_leg, opts.attempts, time_limit_s=limit, strict=False, restarts=opts.restarts, solo=opts.solo,
-                       tails=opts.tails)
-    if leg.complete:
-        head = _Piece("prioritized (reference 003's schedule, until its last arrival)", joints[: cut + 1], movers, 1, wall)
-        away = np.flatnonzero(~np.all(state == home, axis=1) & ~scenario.locked).tolist()
-        out["prioritized, completed"] = [head, _Piece("direct from there (the positioners it left short)", leg.joints, away, leg.runs,
-                                                      time.perf_counter() - t1, first_samples=leg.first_samples,
-                                                      rescued=leg.rescued)]
-    return out
+    return {}
 
 
 def _through_retraction(scenario: Scenario, opts: _Options, home: np.ndarray, short: np.ndarray) -> list[_Piece] | None:
@@ -544,8 +522,7 @@ def coordinate(
     structure = _strategies(scenario, route, recorded, opts, consider)
     if route == "auto" and scenario.n_positioners <= opts.prioritized_up_to and not opts.rest_steps and not _WHOLE_FALLBACK.get():
         # (Not where the run keeps speed ramps between its runs: the schedule's moves start and stop at full speed.)
-        complete = [scores[name][1] for name in candidates if scores[name][0] == 0]
-        for name, pieces in _prioritized(scenario, recorded, opts, min(complete) if complete else None).items():
+        for name, pieces in _prioritized(scenario, opts).items():
             consider(name, pieces)
 
     def short() -> bool:
