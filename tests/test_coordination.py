@@ -574,14 +574,16 @@ def test_small_groups_whose_moves_cross_take_the_prioritized_schedule_where_it_i
     np.testing.assert_array_equal(limited.trajectory.joints, own.trajectory.joints)
 
 
-def test_a_prioritized_plan_left_short_goes_through_a_retraction_of_the_short_ones():
+def test_a_prioritized_plan_left_short_goes_through_a_retraction_of_the_short_ones(monkeypatch):
     from fiberplan.planners.coordination import layer
     from fiberplan.studies import hard_scenario
 
     sc = hard_scenario("sdss", 7, 1)  # the schedule places 5 of 7 at every slack tried
     settings = fp.make_settings("mpc", sc, {})
     opts = layer._options(settings, sc)
-    found = layer._prioritized(sc, opts)
+    with monkeypatch.context() as m:  # the datum's beta, at the target's alpha, alone
+        m.setattr(layer, "RETRACTIONS", ((1.0, "target"),))
+        found = layer._prioritized(sc, opts)
     (retraction,) = found["prioritized through a retraction"]
     assert set(found) == {"prioritized through a retraction"}
     traj = layer._join(sc, [retraction], settings.dt_s)
@@ -591,6 +593,10 @@ def test_a_prioritized_plan_left_short_goes_through_a_retraction_of_the_short_on
     beta = sc.instrument.datum_rad[1]
     at_beta = np.any(np.isclose(retraction.joints[:, :, 1], beta, rtol=0.0, atol=1e-9), axis=0)
     assert int(at_beta.sum()) == 2 and "retraction of 2" in retraction.name
+    # Every retraction tried: none longer than that one.
+    (shortest,) = layer._prioritized(sc, opts)["prioritized through a retraction"]
+    assert len(shortest.joints) <= len(retraction.joints)
+    assert fp.verify(sc, layer._join(sc, [shortest], settings.dt_s)).ok
     # Through the layer: the shortest candidate, shorter than the two legs through the datum.
     auto = fp.plan(sc, "mpc")
     assert auto.stats["chosen"] == "prioritized through a retraction"
