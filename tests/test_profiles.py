@@ -20,12 +20,17 @@ from fiberplan.profile_io import read_paths, write_profiles
 from fiberplan.profiles import _allowed_speeds, _fit_joint, discretise_trajectory, rebuild
 from fiberplan.trajectory import Trajectory
 
+MPC_OWN = {"motor_limits": False, "route_prioritized_up_to": 0}
+"""The mpc without its motor governor, on its own routes (not the prioritized schedule the layer
+tries on groups this small): stop-and-go samples that break the motor limits, for the
+discretiser to mend."""
+
 
 @pytest.fixture(scope="module")
 def moons_run() -> fp.PlanResult:
     """MOONS (capsule model, motor limits stated) 19 unfold seed 1, planned by the mpc without its
     motor governor: samples that break the motor limits, for the discretiser to mend."""
-    return fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 1), "mpc", {"motor_limits": False})
+    return fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 1), "mpc", MPC_OWN)
 
 
 @pytest.fixture(scope="module")
@@ -414,7 +419,7 @@ def test_pauses_and_mended_creeps_leave_no_motor_violation(monkeypatch):
     the pauses inside their segments (:data:`STRETCH_PAUSES`) are tested below."""
     import fiberplan.profiles as profiles_module
 
-    run = fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 3), "mpc", {"motor_limits": False})
+    run = fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 3), "mpc", MPC_OWN)
     motors = run.scenario.instrument.motors
     plain = fp.discretise(run, pauses=False)
     monkeypatch.setattr(profiles_module, "STRETCH_PAUSES", False)
@@ -460,7 +465,7 @@ def test_joints_run_through_the_pauses_where_the_motors_allow(monkeypatch):
     makespan; the result is verified like any other."""
     import fiberplan.profiles as profiles_module
 
-    run = fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 3), "mpc", {"motor_limits": False})
+    run = fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 3), "mpc", MPC_OWN)
     motors = run.scenario.instrument.motors
     monkeypatch.setattr(profiles_module, "DECHATTER", False)
     through = fp.discretise(run)
@@ -493,7 +498,7 @@ def test_joints_run_through_the_pauses_where_the_motors_allow(monkeypatch):
 def test_cli_no_pauses_leaves_the_violations_reported(tmp_path, run_cli):
     """``--no-pauses`` is honoured: the same run exported with the violations the fit left, reported."""
     run = tmp_path / "m.h5"
-    fp.save_result(fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 3), "mpc", {"motor_limits": False}), run)
+    fp.save_result(fp.plan(fp.make_scenario("moons-capsules", 19, "unfold", 3), "mpc", MPC_OWN), run)
     results = {}
     for flag in ("--pauses", "--no-pauses"):
         code, out, _ = run_cli(["profiles", str(run), "--out", str(tmp_path / f"p{flag}.json"), "--json", flag])

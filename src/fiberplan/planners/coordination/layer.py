@@ -282,8 +282,9 @@ complete on 12, 15 and 16 seeds at 1.2, 1.5 and 2.0 alone."""
 RETRACTION_ROUNDS = 3
 """Rounds of :func:`_through_retraction` in :func:`_prioritized`: the positioners the schedule
 left short retract; if a leg then leaves anyone short, their neighbours too, and so on. SDSS 7
-hard seeds 6, 8, 14, 20, 27, 29: no retraction of the short ones alone completes, of the whole
-group (their neighbours) 1.23-1.63 x the bound against 1.66-3.33 x before."""
+hard seeds 6, 8, 14, 20, 27, 29 (measured with the datum's beta at the target's alpha alone): no
+retraction of the short ones alone completes, of the whole group (their neighbours) 1.23-1.63 x
+the bound against 1.66-3.33 x through the datum."""
 
 
 def _scheduled(leg: Scenario, opts: _Options) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -321,9 +322,8 @@ def _prioritized(scenario: Scenario, opts: _Options) -> dict[str, list[_Piece]]:
       way to the datum's, alpha at the target's, the start's or half-way), everyone else on the
       targets: ``start -> that``, then ``(targets -> that)`` reversed, overlapped where clear
       (:func:`overlap_legs`), the shortest kept; if none is complete, their neighbours retract
-      too (:data:`RETRACTION_ROUNDS`). The issue's
-      partial retract: only those the plan cannot bring home (and the neighbours they need)
-      retract, and only their beta.
+      too (:data:`RETRACTION_ROUNDS`). The issue's partial retract: only those the plan cannot
+      bring home (and the neighbours they need) retract.
 
     Where a group's moves cross, the schedule's timed paths through each positioner's joint grid
     find crossing motions near the bound that the reactive planners miss (SDSS 7 hard groups: they
