@@ -140,12 +140,10 @@ def test_restarts_shorten_a_leg_with_stragglers_and_never_lengthen_one():
     sc = fp.make_scenario("moons-capsules", 61, "random", 0)
     fold = leg_scenario(sc, sc.target, np.broadcast_to(np.array(sc.instrument.datum_rad), (61, 2)), "fold")
     plain = fp.plan(fold, "mpc", {"route": "direct"})
-    # (The prioritized schedule, a candidate on groups this small, is not what this test is about.)
-    own = {"route_prioritized_up_to": 0}
-    once = fp.plan(fold, "mpc", {"route_restarts": False} | own)  # a fold: the planner alone, through the layer
+    once = fp.plan(fold, "mpc", {"route_restarts": False} | OWN_ROUTES)  # a fold: the planner alone, through the layer
     assert once.stats["structure"] == "fold"
     np.testing.assert_array_equal(once.trajectory.joints, plain.trajectory.joints)
-    shortened = fp.plan(fold, "mpc", own)
+    shortened = fp.plan(fold, "mpc", OWN_ROUTES)
     assert shortened.stats["planner_runs"] > 1
     assert shortened.trajectory.duration_s < 0.9 * plain.trajectory.duration_s  # 37.85 s -> 19-20 s when measured
     summary = _check(fold, shortened)
@@ -589,7 +587,7 @@ def test_a_prioritized_plan_left_short_goes_through_a_retraction_of_the_short_on
     traj = layer._join(sc, [retraction], settings.dt_s)
     assert fp.verify(sc, traj).ok
     np.testing.assert_allclose(traj.joints[-1], sc.target, rtol=0.0, atol=1e-12)
-    # The two positioners left short pass through the datum's beta; the others never retract.
+    # The two positioners left short pass through the datum's beta; the others never reach it.
     beta = sc.instrument.datum_rad[1]
     at_beta = np.any(np.isclose(retraction.joints[:, :, 1], beta, rtol=0.0, atol=1e-9), axis=0)
     assert int(at_beta.sum()) == 2 and "retraction of 2" in retraction.name
@@ -622,3 +620,17 @@ def test_where_retracting_the_short_ones_is_not_enough_their_neighbours_retract_
     traj = layer._join(sc, [retraction], settings.dt_s)
     assert fp.verify(sc, traj).ok
     np.testing.assert_allclose(traj.joints[-1], sc.target, rtol=0.0, atol=1e-12)
+
+
+def test_no_prioritized_candidate_where_the_run_keeps_speed_ramps_between_its_runs():
+    from fiberplan.instrument_io import load_instrument
+    from fiberplan.studies import hard_scenario
+
+    spec = load_instrument("sdss").to_dict()
+    spec.setdefault("motors", {})["ramp_time_s"] = 0.2
+    sc = hard_scenario("sdss", 7, 3)  # the schedule's plan is the shortest without ramps (above)
+    ramped = scenario_from_dict(sc.to_dict() | {"instrument": spec}, origin="test")
+    result = fp.plan(ramped, "mpc")
+    assert result.settings["motor_limits"]
+    assert not [c for c in result.stats["candidates"] if c["strategy"].startswith("prioritized")]
+    assert fp.summarize(result)["reached"] == 7

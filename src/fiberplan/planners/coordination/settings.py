@@ -35,6 +35,6 @@ class RouteSettings:
     route_overlap: bool = setting(True, "the leg from the datum starts while the last ones still fold, where every new pair "
                                   "keeps the safety margin", group="route")
     route_prioritized_up_to: int = setting(19, "groups of at most this many positioners also try the prioritized planner's "
-                                           "schedule (reference 003), alone and completed by this planner from where it "
-                                           "stopped; kept where shorter (0: never)", unit="positioners", low=0, high=1_000_000,
+                                           "schedule (reference 003), alone or through a partial retraction of those it leaves "
+                                           "short; kept where shorter (0: never)", unit="positioners", low=0, high=1_000_000,
                                            group="route")
