@@ -396,8 +396,13 @@ def _through_retraction(scenario: Scenario, opts: _Options, home: np.ndarray, sh
             continue
         first = leg_scenario(scenario, scenario.start, mid, "prioritized-retract")
         back = leg_scenario(scenario, home, mid, "prioritized-retract-reversed")
-        one, two = _scheduled(first, opts), _scheduled(back, opts)
-        if one is None or two is None or (first.has_target & ~one[1]).any() or (back.has_target & ~two[1]).any():
+        # The second leg first: only the retracting ones move in it, and where one of them cannot
+        # retract among the others on their targets (the usual failure), the first is not planned.
+        two = _scheduled(back, opts)
+        if two is None or (back.has_target & ~two[1]).any():
+            continue
+        one = _scheduled(first, opts)
+        if one is None or (first.has_target & ~one[1]).any():
             continue
         j1 = exactly_at(one[0], first.target, mid)
         j2 = exactly_at(two[0], back.target, mid)[::-1]
