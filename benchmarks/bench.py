@@ -162,7 +162,7 @@ def _gap_rows(central: dict[str, Any], other: dict[str, Any]) -> list[dict[str, 
            and r.get("clean") and r.get("success_rate") == 1.0}
     out = []
     for r in other["rows"]:
-        if r["planner"] == "central" or r.get("status") != "ok":
+        if r["planner"] == "central" or r.get("status") not in ("ok", None):
             continue
         c = ref.get(r["scenario"])
         if c is not None and not np.isclose(c["lower_bound_s"], r["lower_bound_s"], rtol=1e-12, atol=0.0):
