@@ -103,11 +103,25 @@ def _datum(scenario: Scenario) -> np.ndarray:
     return datum
 
 
+def _home(scenario: Scenario) -> np.ndarray:
+    """Where each positioner must end: its target, or its start if it has none."""
+    return np.where(scenario.has_target[:, None], scenario.target, scenario.start)
+
+
+def _with_neighbours(scenario: Scenario, movers: np.ndarray) -> np.ndarray:
+    """``movers`` (a mask) with their neighbours, none of them locked."""
+    pairs = scenario.pairs
+    near = np.unique(pairs[movers[pairs[:, 0]] | movers[pairs[:, 1]]].ravel()) if len(pairs) else np.zeros(0, dtype=int)
+    grown = movers.copy()
+    grown[near] = True
+    return grown & ~scenario.locked
+
+
 def _folded_midway(scenario: Scenario, start: np.ndarray) -> np.ndarray:
     """Folded (the datum's beta) at the alpha half-way between the start and the target: safe for
     everyone (folded positioners of every preset keep clear of each other at any alphas), and each
     leg turns alpha half the way."""
-    home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)
+    home = _home(scenario)
     out = _datum(scenario)
     free = ~scenario.locked
     out[free, 0] = 0.5 * (start[free, 0] + home[free, 0])
@@ -151,7 +165,7 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     then join."""
     start = scenario.start if start is None else start
     movers = ~scenario.locked if movers is None else movers
-    home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)  # where each must end
+    home = _home(scenario)
     safe = _folded_midway(scenario, start) if midway else _datum(scenario)
     hold = _clear_holds(scenario, np.where(movers[:, None], safe, start), movers)
     fold = leg_scenario(scenario, start, hold, "fold")
@@ -252,21 +266,16 @@ def _fix_up(scenario: Scenario, direct: _Piece, plan_leg: PlanLeg, opts: _Option
     cut = int(np.nanmax(arrive[reached])) if reached.any() else 0
     state = direct.joints[cut]
     # The positioners still short, and the held ones away from home, go through the datum.
-    home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)
+    home = _home(scenario)
     movers = ~np.all(state == home, axis=1) & ~scenario.locked
     if not movers.any():
         return None
-    pairs = scenario.pairs
     head = _Piece("direct (until its last arrival)", direct.joints[: cut + 1], direct.moved, direct.attempts, direct.wall_s)
     for _ in range(rounds):
         legs = _via_datum(scenario, plan_leg, opts, start=state, movers=movers, label="fix-up: ")
         if legs is not None:
             return [head, *legs]
-        # The neighbours of the movers fold too, next round.
-        near = np.unique(pairs[movers[pairs[:, 0]] | movers[pairs[:, 1]]].ravel()) if len(pairs) else np.zeros(0, dtype=int)
-        grown = movers.copy()
-        grown[near] = True
-        grown &= ~scenario.locked
+        grown = _with_neighbours(scenario, movers)  # the neighbours of the movers fold too, next round
         if np.array_equal(grown, movers):
             break
         movers = grown
@@ -340,18 +349,13 @@ def _prioritized(scenario: Scenario, opts: _Options) -> dict[str, list[_Piece]]:
     if not (scenario.has_target & ~reached).any():
         return {"prioritized": [_Piece(f"prioritized (reference 003's schedule, slack {slack:g})", joints,
                                        np.flatnonzero(scenario.has_target).tolist(), 1, time.perf_counter() - t0)]}
-    home = np.where(scenario.has_target[:, None], scenario.target, scenario.start)
+    home = _home(scenario)
     retract = scenario.has_target & ~reached
     for _ in range(RETRACTION_ROUNDS):
         retracted = _through_retraction(scenario, opts, home, retract)
         if retracted is not None:
             return {"prioritized through a retraction": retracted}
-        # Their neighbours retract too, next round.
-        pairs = scenario.pairs
-        near = np.unique(pairs[retract[pairs[:, 0]] | retract[pairs[:, 1]]].ravel()) if len(pairs) else np.zeros(0, dtype=int)
-        grown = retract.copy()
-        grown[near] = True
-        grown &= scenario.has_target & ~scenario.locked
+        grown = _with_neighbours(scenario, retract) & scenario.has_target  # their neighbours retract too, next round
         if np.array_equal(grown, retract):
             break
         retract = grown
