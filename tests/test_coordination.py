@@ -231,6 +231,7 @@ def test_command_line_unfold_reaches_all_and_names_the_route(tmp_path):
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
     assert summary["reached"] == 61 and summary["collisions"] == 0
+    assert summary["route"] == "reverse"  # the unfold is the fold from the targets, played backwards
 
 
 def test_a_restart_past_a_shortened_leg_is_not_planned():

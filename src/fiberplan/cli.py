@@ -148,7 +148,7 @@ _SUMMARY_KEYS = (
     "planner", "instrument", "scenario_kind", "n_positioners", "seed", "targets", "reached", "success_rate", "held",
     "deadlocked", "unfinished", "failed", "displaced", "infeasible", "locked", "collisions", "limit_violations", "motor_violations",
     "makespan_s", "lower_bound_s",
-    "makespan_over_bound", "plan_wall_s",
+    "makespan_over_bound", "plan_wall_s", "route",
 )
 
 

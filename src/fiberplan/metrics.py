@@ -121,6 +121,9 @@ def _summarize(result: PlanResult | RunFile, report: VerificationReport | None) 
         "path_length_mm_total": float(paths.sum()),
         "energy_rad2_s": energy(trajectory),
     }
+    stats = result.stats or {}
+    if "structure" in stats and "chosen" in stats:  # planned through the coordination layer: the route it took
+        summary["route"] = stats["chosen"]
     summary["not_reached"] = explain(scenario, trajectory.joints[-1], np.asarray(result.outcome)) if np.isfinite(
         trajectory.joints[-1]).all() else {}
     if report is not None:
