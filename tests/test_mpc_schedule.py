@@ -314,3 +314,39 @@ def test_progress_along_a_route_is_not_taken_for_a_deadlock():
     assert along.stats["deadlocks_detected"] < straight.stats["deadlocks_detected"]
     assert along.stats["pair_resolutions"] == 0 < straight.stats["pair_resolutions"]
     assert np.nanmax(arrival_times(sc, along.trajectory)) <= 1.2 * bound < 1.5 * bound < np.nanmax(arrival_times(sc, straight.trajectory))
+
+
+def test_a_large_field_is_scheduled_in_parts_that_keep_every_margin(monkeypatch):
+    # Above SPLIT_ABOVE (lowered here) the field is scheduled as a strip across its middle, then
+    # the two halves beside it against the strip: every placed pair still keeps its floor, the
+    # pairs across the cut too, and the schedule is the same whether a half is forked or not.
+    from fiberplan import _fork
+    from fiberplan.planners.mpc import schedule as S
+
+    sc = make_scenario("desi", 2000, "random", 0)
+    settings = make_settings("mpc", sc)
+    step_rad = sc.instrument.speeds_rad_s * settings.dt_s
+    monkeypatch.setattr(S, "SPLIT_ABOVE", 500)
+    forked = start_schedule(sc, step_rad, settings.margin_mm, l_paths=True)
+    parts = []
+
+    class Counted(S.StartScheduler):
+        def __init__(self, part, *args, **kwargs):
+            parts.append(part.n_positioners)
+            super().__init__(part, *args, **kwargs)
+
+    monkeypatch.setattr(S, "StartScheduler", Counted)
+    monkeypatch.setattr(_fork, "can_fork", lambda: False)
+    alone = start_schedule(sc, step_rad, settings.margin_mm, l_paths=True)
+    assert len(parts) == 3 and parts[0] < 0.2 * sc.n_positioners and sum(parts) < 1.3 * sc.n_positioners  # the strip, two halves
+    assert np.array_equal(forked.delay_steps, alone.delay_steps) and np.array_equal(forked.unplaced, alone.unplaced)
+    assert np.array_equal(forked.corner, alone.corner, equal_nan=True)
+    move = np.ceil(np.max(np.abs(sc.target - sc.start) / step_rad, axis=1) - 1e-9)
+    horizon = int(np.ceil(1.2 * move.max()))
+    pairs, worst, floor = _placed_pairs_worst_and_floor(sc, settings, step_rad, forked, horizon, forked.corner)
+    assert np.all(worst >= floor - 1e-9)
+    x, cut = sc.base_xy[:, 0], np.median(sc.base_xy[:, 0])
+    across = (x[pairs[:, 0]] < cut) != (x[pairs[:, 1]] < cut)
+    assert across.sum() > 20  # the cut runs through checked pairs
+    assert np.count_nonzero(forked.delay_steps[np.isin(np.arange(sc.n_positioners), pairs[across].ravel())]) > 0
+    assert np.allclose(_delayed_moves(sc, step_rad, forked.delay_steps, horizon, forked.corner), sc.target)

@@ -33,21 +33,39 @@ def reached_mask(scenario: Scenario, trajectory: Trajectory) -> np.ndarray:
 def arrival_times(scenario: Scenario, trajectory: Trajectory) -> np.ndarray:
     """Time each positioner enters its tolerance disc for good (NaN if it never stays).
 
-    The samples are taken in chunks of about two million positions, so that a large field's
-    fiber positions are never held all at once."""
+    From the sample after which a positioner holds its last configuration exactly, its fiber is
+    where it ends; so a positioner inside its disc at the end is looked at backwards from there
+    until a sample outside (usually the one just before): a large field's fiber positions are
+    never computed, or held, at every sample."""
     joints = trajectory.joints
     n_t, n = joints.shape[0], joints.shape[1]
-    chunk = max(1, 2_000_000 // max(1, n))
+    inst, target_xy = scenario.instrument, scenario.target_xy
+
+    def outside(k: int | np.ndarray, rows: np.ndarray) -> np.ndarray:
+        fibers = fiber_positions(inst, scenario.base_xy[rows], scenario.orient[rows], joints[k, rows])
+        return ~(np.linalg.norm(fibers - target_xy[rows], axis=-1) <= inst.tolerance_mm)  # NaN: outside
+
+    # hold[i]: the first sample from which positioner i keeps its last configuration (NaN at the
+    # end: never, but such a positioner ends outside).
+    held = np.ones(n, dtype=bool)
+    hold = np.full(n, n_t - 1)
+    for k in range(n_t - 2, -1, -1):
+        held &= np.all(joints[k] == joints[-1], axis=-1)
+        if not held.any():
+            break
+        hold[held] = k
     last_out = np.full(n, -1)  # last sample outside the disc; arrival is the sample after it
-    for k0 in range(0, n_t, chunk):
-        fibers = fiber_positions(scenario.instrument, scenario.base_xy, scenario.orient, joints[k0:k0 + chunk])
-        outside_rev = ~(np.linalg.norm(fibers - scenario.target_xy, axis=-1) <= scenario.instrument.tolerance_mm)[::-1]  # NaN: outside
-        any_outside = outside_rev.any(axis=0)
-        last_out = np.where(any_outside, k0 + len(outside_rev) - 1 - np.argmax(outside_rev, axis=0), last_out)
-    arrive_idx = last_out + 1
+    ends_out = outside(n_t - 1, np.arange(n))
+    last_out[ends_out] = n_t - 1
+    rows = np.flatnonzero(~ends_out & (hold > 0))
+    k = hold[rows] - 1
+    while len(rows):  # back from where each settled, until outside
+        out = outside(k, rows)
+        last_out[rows[out]] = k[out]
+        keep = ~out & (k > 0)
+        rows, k = rows[keep], k[keep] - 1
     times = np.append(trajectory.times, np.nan)
-    result = times[arrive_idx]
-    return np.where(scenario.has_target, result, np.nan)
+    return np.where(scenario.has_target, times[last_out + 1], np.nan)
 
 
 def lower_bound_s(scenario: Scenario) -> float:

@@ -30,16 +30,18 @@ with the QPs and the safety layer. Clearances are checked every ``stride`` steps
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from fiberplan import _fork
 from fiberplan.geometry import capsule_segments, capsule_tables, combo_clearances, smallest_clearance
 from fiberplan.kinematics import straight_path
 from fiberplan.layout import neighbour_lists
 from fiberplan.planners.mpc.grid import JointGrid, dilate
 from fiberplan.scenario import Scenario
 
-__all__ = ["StartSchedule", "StartScheduler", "space_time_path", "start_schedule", "timed_waypoints"]
+__all__ = ["SPLIT_ABOVE", "StartSchedule", "StartScheduler", "space_time_path", "start_schedule", "timed_waypoints"]
 
 
 def _full_speed_steps(a: np.ndarray, b: np.ndarray, step_rad: np.ndarray) -> np.ndarray:
@@ -155,6 +157,45 @@ class _TimedGrid:
     blocks: list[tuple[int, np.ndarray, np.ndarray]]
 
 
+@dataclass(frozen=True)
+class _Fixed:
+    """Positioners of a part of the field already scheduled by another part (rows of the part):
+    their delays, moves (steps) and capsules at every step ``(F, horizon + 1, C, 2)``."""
+
+    rows: np.ndarray
+    delay: np.ndarray
+    move: np.ndarray
+    seg_start: np.ndarray
+    seg_end: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Part:
+    """Some positioners of a scenario, as the scheduler reads a scenario: their pairs among
+    themselves, renumbered (in the scenario's pair order)."""
+
+    instrument: Any
+    base_xy: np.ndarray
+    orient: np.ndarray
+    start: np.ndarray
+    target: np.ndarray
+    pairs: np.ndarray
+    priority_rank: np.ndarray
+
+    @property
+    def n_positioners(self) -> int:
+        return len(self.start)
+
+    @staticmethod
+    def of(scenario: Scenario, rows: np.ndarray) -> _Part:
+        local = np.full(scenario.n_positioners, -1, dtype=np.int64)
+        local[rows] = np.arange(len(rows))
+        pairs = local[scenario.pairs]
+        pairs = pairs[(pairs >= 0).all(axis=1)].reshape(-1, 2)
+        return _Part(scenario.instrument, scenario.base_xy[rows], scenario.orient[rows], scenario.start[rows],
+                     scenario.target[rows], pairs, scenario.priority_rank[rows])
+
+
 class StartScheduler:
     """Greedy start delays such that the delayed moves keep their margins pairwise.
 
@@ -179,6 +220,10 @@ class StartScheduler:
             a timed path), or both are restored and the next neighbour is tried.
         first: ``(N,)`` positioners scheduled before all others (reference 003's re-prioritisation
             after a failure); within each group, the longest move first.
+        horizon: the last step of every move (default ``slack`` x the longest move); a part of a
+            field (:func:`start_schedule`) takes the whole field's.
+        fixed: positioners already scheduled (by another part of the field), held as scheduled:
+            the others are checked against them, they are not placed, swapped or repaired.
 
     The state is explicit: per positioner its ``delay``, its ``move`` (steps), its capsules at
     every step of its move as scheduled (``seg_start``, ``seg_end``), its ``corner`` (L-shaped
@@ -190,7 +235,7 @@ class StartScheduler:
     def __init__(
         self, scenario: Scenario, step_rad: np.ndarray, margin_mm: float, delay_steps: int = 4, slack: float = 1.2, stride: int = 2,
         max_options: int = 64, swap_tries: int = 1, l_paths: bool = False, space_time: bool = False, cell_steps: int = 2,
-        repair: bool = False, first: np.ndarray | None = None,
+        repair: bool = False, first: np.ndarray | None = None, horizon: int | None = None, fixed: _Fixed | None = None,
     ) -> None:
         self.scenario, self.step_rad = scenario, step_rad
         self.delay_steps, self.max_options, self.swap_tries = delay_steps, max_options, swap_tries
@@ -209,7 +254,7 @@ class StartScheduler:
         if n == 0 or len(self.pairs) == 0:
             return
         self.move = _full_speed_steps(scenario.start, scenario.target, step_rad)
-        self.horizon = horizon = int(np.ceil(slack * self.move.max()))
+        self.horizon = horizon = int(np.ceil(slack * self.move.max())) if horizon is None else horizon
         # Joints of every straight full-speed move at steps 0..horizon.
         self.path = np.concatenate([scenario.start[:, None], straight_path(scenario.start, scenario.target, step_rad, horizon)], axis=1)
         self.times = np.unique(np.append(np.arange(0, horizon + 1, stride), horizon))
@@ -231,6 +276,12 @@ class StartScheduler:
             self.clean[r] = self._moving_min(a[r, None], t, b[r, None], t).min(axis=1) >= self.floor[r]
         self.nb, self.nb_row = neighbour_lists(self.pairs, n)
         self.straight_move = self.move.copy()
+        self.fixed = np.zeros(n, dtype=bool)
+        if fixed is not None and len(fixed.rows):
+            f = fixed.rows
+            self.fixed[f], self.done[f], self.delay[f], self.move[f] = True, True, fixed.delay, fixed.move
+            self.seg_start[f], self.seg_end[f] = fixed.seg_start, fixed.seg_end
+            self.clean[self.fixed[a] | self.fixed[b]] = False  # their moves may not be the straight ones
         self.n_layers = horizon // cell_steps
         # Every layer is checked at each step within half a layer of it.
         self.samples = np.arange(0, self.n_layers * cell_steps + cell_steps // 2 + 1)
@@ -244,6 +295,8 @@ class StartScheduler:
             return StartSchedule(self.delay, np.zeros(0, dtype=np.int64), 0, self.corner)
         # Longest move first, after the targets of higher priority (the scenario's, none by default).
         for i in np.lexsort((np.arange(self.n), -self.move, self.priority, ~self.first)).tolist():
+            if self.fixed[i]:
+                continue
             d, js, options, ok = self._place(i)
             if d is None:
                 if self._swap(i, js, options, ok):
@@ -336,6 +389,8 @@ class StartScheduler:
         conflicts = (~ok).sum(axis=1)
         for best in np.lexsort((options, conflicts))[: self.swap_tries].tolist():
             others = js[~ok[best]]
+            if self.fixed[others].any():  # scheduled by another part: held
+                continue
             saved = delay[others].copy(), unplaced[others].copy()
             delay[i], done[i] = options[best], True
             done[others] = False
@@ -479,7 +534,7 @@ class StartScheduler:
         tg = None
         nb = self.nb[i]
         for j in nb[np.lexsort((nb, -self.move[nb]))].tolist():
-            if self.unplaced[j]:
+            if self.unplaced[j] or self.fixed[j]:
                 continue
             if tg is None:
                 tg = self._timed_grid(i)
@@ -501,6 +556,11 @@ class StartScheduler:
         return False
 
 
+SPLIT_ABOVE = 10_000
+"""A field of more positioners is scheduled in two halves at once (:func:`start_schedule`);
+up to this many (every benchmark set but the scaling one), whole as before."""
+
+
 def start_schedule(
     scenario: Scenario, step_rad: np.ndarray, margin_mm: float, delay_steps: int = 4, slack: float = 1.2, stride: int = 2,
     max_options: int = 64, swap_tries: int = 1, l_paths: bool = False, space_time: bool = False, cell_steps: int = 2,
@@ -508,11 +568,64 @@ def start_schedule(
 ) -> StartSchedule:
     """Start delays such that the delayed moves keep their margins pairwise (:class:`StartScheduler`).
 
+    A field of more than :data:`SPLIT_ABOVE` positioners is scheduled in parts
+    (:func:`_split_schedule`): a strip across its middle first, then the two halves beside it at
+    once (one in a forked process where there is a second core), each against the strip as
+    scheduled. Every pair is still checked, by whichever of its two is placed later; the order
+    differs from the whole field's only in that the strip goes first.
+
     Returns:
         The delays; ``unplaced`` lists the positioners no delay fitted (delay 0); ``corner``
         the corners of the L-shaped moves placed; ``timed`` the waypoints and departure steps
         of the timed paths placed (their delay is their first departure).
     """
-    return StartScheduler(
-        scenario, step_rad, margin_mm, delay_steps, slack, stride, max_options, swap_tries, l_paths, space_time, cell_steps, repair
-    ).run()
+    args = (step_rad, margin_mm, delay_steps, slack, stride, max_options, swap_tries, l_paths, space_time, cell_steps, repair)
+    if scenario.n_positioners > SPLIT_ABOVE and len(scenario.pairs):
+        return _split_schedule(scenario, args)
+    return StartScheduler(scenario, *args).run()
+
+
+def _split_schedule(scenario: Scenario, args: tuple[Any, ...]) -> StartSchedule:
+    """:func:`start_schedule` of a large field in three parts. The cut runs across the field at
+    its median x; the strip holds every positioner within half the longest pair distance of it,
+    so no pair joins the two halves beside it. The strip is scheduled first, alone; then each half
+    with the strip's positioners it pairs with, those held as the strip scheduled them
+    (:class:`_Fixed`). The halves share nothing but the strip, so they are scheduled at once
+    (:func:`fiberplan._fork.both`): the same schedule with or without a second process."""
+    step_rad, slack = args[0], args[3]
+    n, pairs = scenario.n_positioners, scenario.pairs
+    horizon = int(np.ceil(slack * _full_speed_steps(scenario.start, scenario.target, step_rad).max()))
+    x = scenario.base_xy[:, 0]
+    reach = float(np.max(np.linalg.norm(scenario.base_xy[pairs[:, 0]] - scenario.base_xy[pairs[:, 1]], axis=1)))
+    cut = float(np.median(x))
+    in_strip = np.abs(x - cut) <= 0.5 * reach
+    strip = np.flatnonzero(in_strip)
+    first = StartScheduler(_Part.of(scenario, strip), *args, horizon=horizon)
+    strip_schedule = first.run()
+    at = np.full(n, -1, dtype=np.int64)
+    at[strip] = np.arange(len(strip))
+
+    def half(side: np.ndarray) -> tuple[np.ndarray, StartSchedule, np.ndarray]:
+        near = np.zeros(n, dtype=bool)
+        touching = side[pairs[:, 0]] | side[pairs[:, 1]]
+        near[pairs[touching].ravel()] = True
+        rows = np.flatnonzero(side | (near & in_strip))
+        held = in_strip[rows]
+        k = at[rows[held]]
+        fixed = _Fixed(np.flatnonzero(held), first.delay[k], first.move[k], first.seg_start[k], first.seg_end[k])
+        return rows, StartScheduler(_Part.of(scenario, rows), *args, horizon=horizon, fixed=fixed).run(), held
+
+    left, right, _ = _fork.both(lambda: half(x < cut - 0.5 * reach), lambda: half(x > cut + 0.5 * reach))
+    delay = np.zeros(n, dtype=np.int64)
+    unplaced = np.zeros(n, dtype=bool)
+    corner = np.full((n, 2), np.nan)
+    timed: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    swaps = 0
+    for rows, schedule, held in ((strip, strip_schedule, np.zeros(len(strip), dtype=bool)), left, right):
+        own = ~held
+        delay[rows[own]] = schedule.delay_steps[own]
+        unplaced[rows[schedule.unplaced]] = True
+        corner[rows[own]] = schedule.corner[own]
+        timed.update({int(rows[k]): path for k, path in schedule.timed.items()})
+        swaps += schedule.swaps
+    return StartSchedule(delay, np.flatnonzero(unplaced), swaps, corner, timed)
