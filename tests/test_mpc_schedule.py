@@ -350,3 +350,40 @@ def test_a_large_field_is_scheduled_in_parts_that_keep_every_margin(monkeypatch)
     assert across.sum() > 20  # the cut runs through checked pairs
     assert np.count_nonzero(forked.delay_steps[np.isin(np.arange(sc.n_positioners), pairs[across].ravel())]) > 0
     assert np.allclose(_delayed_moves(sc, step_rad, forked.delay_steps, horizon, forked.corner), sc.target)
+
+
+def test_late_joint_moves_keep_their_margins_take_the_straight_time_and_end_sooner():
+    # late_corners: a positioner that needs a delay also tries its move with the faster joint
+    # starting late (through a corner where only the slower joint has moved), kept where it ends
+    # sooner; late: such a move from the start.
+    from fiberplan.planners.mpc.schedule import StartScheduler
+
+    sc = make_scenario("desi", 500, "random", 0)
+    settings = make_settings("mpc", sc)
+    step_rad = sc.instrument.speeds_rad_s * settings.dt_s
+    plain = start_schedule(sc, step_rad, settings.margin_mm)
+    move = np.ceil(np.max(np.abs(sc.target - sc.start) / step_rad, axis=1) - 1e-9)
+    longest = int(np.argmax(move))
+    late = np.zeros(sc.n_positioners, dtype=bool)
+    late[longest] = True
+    schedule = StartScheduler(sc, step_rad, settings.margin_mm, late_corners=True, late=late).run()
+    shaped = np.flatnonzero(~np.isnan(schedule.corner[:, 0]))
+    assert longest in shaped and len(shaped) > 5
+    c = schedule.corner[shaped]
+    steps = np.abs(sc.target[shaped] - sc.start[shaped]) / step_rad
+    fast = np.argmin(steps, axis=1)
+    rows = np.arange(len(shaped))
+    # The faster joint still at its start at the corner; from there both joints need the same time.
+    assert np.all(c[rows, fast] == sc.start[shaped, fast])
+    rest = np.abs(sc.target[shaped] - c) / step_rad
+    np.testing.assert_allclose(rest[rows, fast], rest[rows, 1 - fast], atol=1e-9)
+    # The shaped ones (but the longest) end sooner than on their straight move, delayed as the plain schedule delays them.
+    others = shaped[shaped != longest]
+    lag = np.ceil(np.max(np.abs(c - sc.start[shaped]) / step_rad, axis=1) - 1e-9)
+    ends = schedule.delay_steps[shaped] + lag + np.ceil(np.max(rest, axis=1) - 1e-9)
+    assert np.all(ends - schedule.delay_steps[shaped] <= move[shaped] + 1)  # the straight move's time (up to rounding)
+    assert np.all(ends[shaped != longest] <= move[others] + plain.delay_steps[others])
+    horizon = int(np.ceil(1.2 * move.max()))
+    _, worst, floor = _placed_pairs_worst_and_floor(sc, settings, step_rad, schedule, horizon, schedule.corner)
+    assert np.all(worst >= floor - 1e-9)
+    assert np.allclose(_delayed_moves(sc, step_rad, schedule.delay_steps, horizon, schedule.corner), sc.target)

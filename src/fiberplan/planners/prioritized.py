@@ -62,6 +62,10 @@ class PrioritizedSettings:
                               group="schedule")
     repair: bool = setting(True, "an unplaced positioner goes first, a placed neighbour being placed again after it",
                            group="schedule")
+    late_corners: bool = setting(False, "a positioner that needs a delay also tries its move with the faster joint starting late "
+                                 "(the same duration, another sweep), keeping the one that ends first", group="schedule")
+    late_longest: int = setting(0, "the move this far down the order of move times (1: the longest) starts with the faster joint "
+                                "late; 0: none", low=0, high=1000, group="schedule")
     safety_margin_mm: float = setting(0.02, "smallest clearance the safety layer lets an executed step reach", unit="mm", low=0.0,
                                       high=10.0, group="safety")
     max_duration_factor: float = setting(3.0, "the execution stops after this many times the lower bound, plus one turn of the "
@@ -82,9 +86,14 @@ class PrioritizedSettings:
 
 
 def _schedule(scenario: Scenario, settings: PrioritizedSettings, step_rad: np.ndarray, first: np.ndarray) -> StartSchedule:
+    late = np.zeros(scenario.n_positioners, dtype=bool)
+    if 0 < settings.late_longest <= scenario.n_positioners:
+        move = move_times(scenario.instrument, scenario.start, scenario.target)
+        late[np.lexsort((np.arange(len(move)), -move))[settings.late_longest - 1]] = True
     return StartScheduler(
         scenario, step_rad, settings.margin_mm, settings.delay_steps, settings.slack, l_paths=settings.l_paths,
         space_time=settings.space_time, cell_steps=settings.cell_steps, repair=settings.repair, first=first,
+        late_corners=settings.late_corners, late=late,
     ).run()
 
 

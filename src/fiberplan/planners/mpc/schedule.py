@@ -224,6 +224,10 @@ class StartScheduler:
             field (:func:`start_schedule`) takes the whole field's.
         fixed: positioners already scheduled (by another part of the field), held as scheduled:
             the others are checked against them, they are not placed, swapped or repaired.
+        late_corners: a positioner that needs a delay also tries its move with the faster joint
+            starting late (:meth:`_late_corner`: the same duration, another sweep) and keeps the
+            one that ends first.
+        late: ``(N,)`` positioners whose move starts with that shape (before anyone is placed).
 
     The state is explicit: per positioner its ``delay``, its ``move`` (steps), its capsules at
     every step of its move as scheduled (``seg_start``, ``seg_end``), its ``corner`` (L-shaped
@@ -236,6 +240,7 @@ class StartScheduler:
         self, scenario: Scenario, step_rad: np.ndarray, margin_mm: float, delay_steps: int = 4, slack: float = 1.2, stride: int = 2,
         max_options: int = 64, swap_tries: int = 1, l_paths: bool = False, space_time: bool = False, cell_steps: int = 2,
         repair: bool = False, first: np.ndarray | None = None, horizon: int | None = None, fixed: _Fixed | None = None,
+        late_corners: bool = False, late: np.ndarray | None = None,
     ) -> None:
         self.scenario, self.step_rad = scenario, step_rad
         self.delay_steps, self.max_options, self.swap_tries = delay_steps, max_options, swap_tries
@@ -276,6 +281,11 @@ class StartScheduler:
             self.clean[r] = self._moving_min(a[r, None], t, b[r, None], t).min(axis=1) >= self.floor[r]
         self.nb, self.nb_row = neighbour_lists(self.pairs, n)
         self.straight_move = self.move.copy()
+        self.late_corners = late_corners
+        for i in np.flatnonzero(np.zeros(n, dtype=bool) if late is None else late).tolist():
+            c = self._late_corner(i)
+            if c is not None and self._route_through(i, c):
+                self.corner[i] = c
         self.fixed = np.zeros(n, dtype=bool)
         if fixed is not None and len(fixed.rows):
             f = fixed.rows
@@ -298,6 +308,8 @@ class StartScheduler:
             if self.fixed[i]:
                 continue
             d, js, options, ok = self._place(i)
+            if self.late_corners and d is not None and d > 0 and np.isnan(self.corner[i, 0]):
+                d = self._try_late(i, d)
             if d is None:
                 if self._swap(i, js, options, ok):
                     self.swaps += 1
@@ -414,20 +426,59 @@ class StartScheduler:
         rows = self.nb_row[i]
         saved = self.seg_start[i].copy(), self.seg_end[i].copy(), int(self.move[i]), self.clean[rows].copy()
         for c in (np.array([t_i[0], s_i[1]]), np.array([s_i[0], t_i[1]])):
-            k1, k2 = (int(k) for k in _full_speed_steps(np.array([s_i, c]), np.array([c, t_i]), self.step_rad))
-            if k1 == 0 or k2 == 0 or k1 + k2 > self.horizon:
+            if not self._route_through(i, c):
                 continue
-            leg1 = straight_path(s_i[None], c[None], self.step_rad, k1)[0]
-            leg2 = straight_path(c[None], t_i[None], self.step_rad, self.horizon - k1)[0]
-            self._set_path(i, np.concatenate([s_i[None], leg1, leg2]))
-            self.move[i] = k1 + k2
-            self.clean[rows] = False
             d = self._place_again(i)
             if d is not None:
                 self.delay[i], self.corner[i] = d, c
                 return True
             self.seg_start[i], self.seg_end[i], self.move[i], self.clean[rows] = saved
         return False
+
+    def _route_through(self, i: int, c: np.ndarray) -> bool:
+        """Set ``i``'s move to run through the corner ``c`` (each leg at full speed), if it ends in time."""
+        s_i, t_i = self.scenario.start[i], self.scenario.target[i]
+        k1, k2 = (int(k) for k in _full_speed_steps(np.array([s_i, c]), np.array([c, t_i]), self.step_rad))
+        if k1 == 0 or k2 == 0 or k1 + k2 > self.horizon:
+            return False
+        leg1 = straight_path(s_i[None], c[None], self.step_rad, k1)[0]
+        leg2 = straight_path(c[None], t_i[None], self.step_rad, self.horizon - k1)[0]
+        self._set_path(i, np.concatenate([s_i[None], leg1, leg2]))
+        self.move[i] = k1 + k2
+        self.clean[self.nb_row[i]] = False
+        return True
+
+    def _late_corner(self, i: int) -> np.ndarray | None:
+        """The corner of ``i``'s move with its faster joint starting late: the slower joint alone
+        first, by as much as it needs more than the faster, then both at full speed, arriving
+        together. The straight move (:func:`fiberplan.kinematics.straight_path`) starts both at
+        once, the faster arriving first; both take the slower joint's time, but the arm sweeps
+        other places. ``None`` when the two joints need about the same time (under a step apart)."""
+        s_i, t_i = self.scenario.start[i], self.scenario.target[i]
+        steps = np.abs(t_i - s_i) / self.step_rad
+        slow = int(np.argmax(steps))
+        lag = steps[slow] - steps[1 - slow]
+        if lag < 1.0:
+            return None
+        c = s_i.copy()
+        c[slow] += np.sign(t_i[slow] - s_i[slow]) * lag * self.step_rad[slow]
+        return c
+
+    def _try_late(self, i: int, d: int) -> int | None:
+        """``i`` (not yet scheduled) on its late-joint move (:meth:`_late_corner`) if a delay fits
+        it that ends sooner than ``d`` on the straight move; the delay kept (``d`` if not)."""
+        c = self._late_corner(i)
+        if c is None:
+            return d
+        rows = self.nb_row[i]
+        saved = self.seg_start[i].copy(), self.seg_end[i].copy(), int(self.move[i]), self.clean[rows].copy()
+        if self._route_through(i, c):
+            late = self._place(i)[0]
+            if late is not None and late + int(self.move[i]) < d + saved[2]:
+                self.corner[i] = c
+                return late
+        self.seg_start[i], self.seg_end[i], self.move[i], self.clean[rows] = saved
+        return d
 
     def _set_path(self, i: int, joints: np.ndarray) -> None:
         """``i``'s capsules along ``joints`` (one configuration per step)."""
