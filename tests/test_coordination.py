@@ -618,7 +618,7 @@ def test_where_retracting_the_short_ones_is_not_enough_their_neighbours_retract_
     settings = fp.make_settings("mpc", sc, {})
     opts = layer._options(settings, sc)
     home = sc.target
-    _, reached, _ = layer._scheduled(sc, opts)
+    _, reached, _, _ = layer._scheduled(sc, opts)
     short = ~reached
     assert int(short.sum()) == 2
     assert layer._through_retraction(sc, opts, home, short) is None
