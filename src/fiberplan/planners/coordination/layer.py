@@ -349,9 +349,12 @@ def _prioritized(scenario: Scenario, opts: _Options) -> dict[str, list[_Piece]]:
     """Candidates from the ``prioritized`` planner's schedule (reference 003's prioritized
     state-time planning, executed under the safety layer; :func:`_scheduled`), by name:
 
-    - ``prioritized``: its plan of the whole move, if it brings everyone home; else
-    - ``prioritized through a retraction``: two legs of the schedule through a configuration in
-      which the positioners it left short sit retracted (:data:`RETRACTIONS`: beta part or all the
+    - ``prioritized``: the shortest of its plans of the whole move that bring everyone home,
+      reference 003's schedule and then the late-joint shapes (:data:`PRIORITIZED_SHAPES`; not
+      tried once a plan arrives at the lower bound);
+    - ``prioritized through a retraction``, where reference 003's schedule leaves some short
+      (beside a complete shaped plan, unless that one is at the lower bound): two legs of the
+      schedule through a configuration in which the positioners it left short sit retracted (:data:`RETRACTIONS`: beta part or all the
       way to the datum's, alpha at the target's, the start's or half-way), everyone else on the
       targets: ``start -> that``, then ``(targets -> that)`` reversed, overlapped where clear
       (:func:`overlap_legs`), the shortest kept; if none is complete, their neighbours retract
