@@ -232,6 +232,8 @@ def test_command_line_unfold_reaches_all_and_names_the_route(tmp_path):
     summary = json.loads(proc.stdout)
     assert summary["reached"] == 61 and summary["collisions"] == 0
     assert summary["route"] == "reverse"  # the unfold is the fold from the targets, played backwards
+    alone = fp.summarize(fp.plan(fp.make_scenario("desi", 7, "random", 0), "mpc", {"route": "direct"}))
+    assert alone["route"] == "direct"
 
 
 def test_a_restart_past_a_shortened_leg_is_not_planned():

@@ -139,9 +139,11 @@ def _summarize(result: PlanResult | RunFile, report: VerificationReport | None) 
         "path_length_mm_total": float(paths.sum()),
         "energy_rad2_s": energy(trajectory),
     }
-    stats = result.stats or {}
+    stats, settings = result.stats or {}, result.settings or {}
     if "structure" in stats and "chosen" in stats:  # planned through the coordination layer: the route it took
         summary["route"] = stats["chosen"]
+    elif settings.get("route") == "direct":  # the planner alone, as asked
+        summary["route"] = "direct"
     summary["not_reached"] = explain(scenario, trajectory.joints[-1], np.asarray(result.outcome)) if np.isfinite(
         trajectory.joints[-1]).all() else {}
     if report is not None:
