@@ -47,11 +47,11 @@ def arrival_times(scenario: Scenario, trajectory: Trajectory) -> np.ndarray:
 
     # hold[i]: the first sample from which positioner i keeps its last configuration (NaN at the
     # end: never, but such a positioner ends outside).
-    held = np.ones(n, dtype=bool)
+    held = np.arange(n)  # those holding their last configuration from sample k on
     hold = np.full(n, n_t - 1)
     for k in range(n_t - 2, -1, -1):
-        held &= np.all(joints[k] == joints[-1], axis=-1)
-        if not held.any():
+        held = held[np.all(joints[k, held] == joints[-1, held], axis=-1)]
+        if not len(held):
             break
         hold[held] = k
     last_out = np.full(n, -1)  # last sample outside the disc; arrival is the sample after it

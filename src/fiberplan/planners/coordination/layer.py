@@ -16,7 +16,7 @@ from fiberplan.geometry import min_pair_clearance
 from fiberplan.metrics import arrival_times, lower_bound_s, reached_mask
 from fiberplan.outcomes import outcome_labels
 from fiberplan.planners.coordination.fork import CHILD_RUNS, RUN_LOG, both
-from fiberplan.planners.coordination.legs import Leg, PlanLeg, _park_candidates, complete_leg, exactly_at, leg_scenario
+from fiberplan.planners.coordination.legs import Leg, PlanLeg, _park_candidates, complete_leg, exactly_at, leg_scenario, with_neighbours
 from fiberplan.planners.coordination.retime import overlap_legs, ramp_rests
 from fiberplan.planners.coordination.settings import REVERSE_LEG, UNFOLD_REVERSED_LEG
 from fiberplan.profiles import chatters
@@ -110,11 +110,7 @@ def _home(scenario: Scenario) -> np.ndarray:
 
 def _with_neighbours(scenario: Scenario, movers: np.ndarray) -> np.ndarray:
     """``movers`` (a mask) with their neighbours, none of them locked."""
-    pairs = scenario.pairs
-    near = np.unique(pairs[movers[pairs[:, 0]] | movers[pairs[:, 1]]].ravel()) if len(pairs) else np.zeros(0, dtype=int)
-    grown = movers.copy()
-    grown[near] = True
-    return grown & ~scenario.locked
+    return with_neighbours(movers, scenario.pairs) & ~scenario.locked
 
 
 def _folded_midway(scenario: Scenario, start: np.ndarray) -> np.ndarray:

@@ -103,13 +103,13 @@ def _moving_part(leg: Scenario) -> tuple[np.ndarray, np.ndarray] | None:
     away = ~at_targets(leg, leg.start) & ~leg.locked
     if n <= LOCAL_ABOVE or not away.any() or not len(pairs):
         return None
-    free = _with_neighbours(away, pairs)
-    ring = _with_neighbours(free, pairs) & ~free
+    free = with_neighbours(away, pairs)
+    ring = with_neighbours(free, pairs) & ~free
     rows = np.flatnonzero(free | ring)
     return (rows, ring) if len(rows) <= LOCAL_SHARE * n else None
 
 
-def _with_neighbours(mask: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+def with_neighbours(mask: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """``mask`` and every positioner paired with one in it."""
     out = mask.copy()
     touching = mask[pairs[:, 0]] | mask[pairs[:, 1]]
