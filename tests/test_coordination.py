@@ -307,6 +307,37 @@ def test_after_the_fallback_planner_this_planner_tries_again_from_where_it_stopp
     assert notes.get("rescued", False) == parks  # a fallback after parking is itself one of the later rounds
 
 
+def test_fallback_rounds_that_move_no_one_end_the_leg_where_it_stood(monkeypatch):
+    # MOONS 19 hard seed 1 (the mpc, the unfold leg of its two legs): both fallback rounds moved
+    # no one, their pieces were empty, and the last solo pass took the last attempt from them
+    # (IndexError: the whole plan crashed). The leg now ends, incomplete, where it stood.
+    import types
+
+    from fiberplan.planners.coordination import legs
+
+    monkeypatch.setattr(legs, "_parking", lambda leg, end: None)
+    monkeypatch.setattr(legs, "solo_moves", lambda leg, q, *a: (q[None],))
+    sc = fp.make_scenario("desi", 7, "random", 0)
+    calls = []
+
+    def plan_leg(leg, time_limit_s=None, use_fallback=False, progress=None):
+        calls.append("fallback" if use_fallback else "own")
+        if use_fallback:  # one sample: nothing moves
+            return types.SimpleNamespace(trajectory=fp.Trajectory(np.zeros(1), leg.start[None].copy()))
+        if len(calls) == 1:  # the first attempt: positioner 0 moves a little, no one arrives
+            nudged = leg.start.copy()
+            nudged[0] += 1e-3 * np.sign(leg.target[0] - leg.start[0])
+            joints = np.stack([leg.start, nudged])
+        else:
+            joints = np.stack([leg.start, leg.start])
+        return types.SimpleNamespace(trajectory=fp.Trajectory(np.arange(len(joints)) * 0.01, joints))
+
+    joints, _, complete = legs._attempts(sc, plan_leg, 2, None, True, False, (0.0, 0.01), {})
+    assert not complete and calls.count("fallback") == legs.FALLBACK_ROUNDS
+    np.testing.assert_array_equal(joints[0], sc.start)
+    assert len(joints) == 2 and not np.array_equal(joints[-1], sc.start)  # the nudge kept, nothing lost or repeated
+
+
 def test_a_plan_complete_only_through_the_later_fallback_rounds_is_weighed_against_the_fallback_planner(monkeypatch):
     """MOONS 61 unfold seed 23 under MOONS' zones: the reverse leg completes through the later
     fallback rounds in 51.6 s, the dnf's whole move in 13.7 s: the shorter is returned."""
