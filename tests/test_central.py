@@ -353,3 +353,23 @@ def test_lazy_rounds_start_warm_from_the_last_round(crossing: Scenario, monkeypa
     assert runs[True].iterations < runs[False].iterations
     assert [a[:2] for a in runs[True].attempts][:2] == [(0, False), (1, True)]  # round 0 cold, round 1 warm
     assert not any(warm for _, warm, *_ in runs[False].attempts)
+
+
+def test_given_starts_best_solves_from_the_best_trajectory_at_hand(crossing: Scenario) -> None:
+    """``given_starts = "best"``: of the trajectories at hand (compare passes its mpc and dnf
+    results) only the best is a start: complete first, then the earliest last arrival."""
+    dnf = plan(crossing, "dnf")
+    assert summarize(dnf)["reached"] == 2
+    held = dataclasses.replace(dnf, planner="mpc", trajectory=Trajectory(np.array([0.0, 1.0]), np.stack([crossing.start] * 2)))
+    waits = Trajectory(np.concatenate([[0.0], dnf.trajectory.times + 1.0]), np.concatenate([crossing.start[None], dnf.trajectory.joints]))
+    slow = dataclasses.replace(dnf, planner="prioritized", trajectory=waits)  # the dnf's plan a second later
+    base = {"warm_start": ["sequential"], "steps": 30}
+
+    def sources(given_starts: str) -> list[str]:
+        settings = make_settings("central", crossing, base | {"given_starts": given_starts})
+        return sorted(c.source for c in solve_central(crossing, settings, warm_results=[held, slow, dnf])[0].candidates)
+
+    assert sources("all") == ["dnf", "mpc", "prioritized", "sequential"]
+    assert sources("best") == ["dnf", "sequential"]  # complete and earliest: not the one that waits 1 s first
+    with pytest.raises(Exception, match="given_starts"):
+        make_settings("central", crossing, {"given_starts": "some"})

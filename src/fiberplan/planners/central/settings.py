@@ -43,6 +43,9 @@ class CentralSettings:
                                      group="problem")
     warm_start: tuple[str, ...] = setting((_STRAIGHT, _SEQUENTIAL), "starts to solve from: straight, sequential or planner names",
                                           group="problem", kind="list")
+    given_starts: str = setting("all", "other planners' trajectories at hand (compare passes its mpc and dnf results) to solve from: "
+                                "all of them, or the best one (complete first, then the shortest)", choices=("all", "best"),
+                                group="problem")
     straight_stretch: float = setting(1.2, "duration of the straight warm start, in lower bounds", low=0.0, high=100.0, low_open=True,
                                       group="problem")
     margin_mm: float = setting(0.02, "extra clearance m demanded by the collision constraints", unit="mm", low=0.0, high=10.0,
