@@ -372,12 +372,11 @@ def _attempts(
         current = dataclasses.replace(leg, start_deg=np.degrees(end), name=f"{leg.name}:attempt{k + 1}")
     if solo is not None and pieces:
         # Once more at the end: the last attempt cut at its last arrival, then the ones still short alone.
-        # (Taken from the whole: a fallback round that moved no one leaves an empty piece, and the
-        # sample the last attempt starts from may then lie pieces back: MOONS 19 hard seed 1.)
-        whole = np.concatenate(pieces)
-        first_of_last = 0 if len(pieces) == 1 else len(whole) - len(pieces[-1]) - 1
-        cut = _until_last_arrival(leg, whole[first_of_last:])
-        pieces = [np.concatenate([whole[:first_of_last], cut])]
+        # (The sample it starts from ends the last piece that has one: a fallback round that moved
+        # no one leaves an empty piece. MOONS 19 hard seed 1 crashed on two of them.)
+        before = next((p[-1:] for p in reversed(pieces[:-1]) if len(p)), None)  # None: the first attempt, with its start
+        cut = _until_last_arrival(leg, pieces[-1] if before is None else np.concatenate([before, pieces[-1]]))
+        pieces[-1] = cut if before is None else cut[1:]
         moved = solo_moves(leg, cut[-1], *solo)[0]
         pieces.append(moved[1:])
         if at_targets(leg, moved[-1]).all():
