@@ -48,17 +48,6 @@ def _sequential_guess(problem: _Problem) -> tuple[np.ndarray, float]:
     return q, min(total / problem.lower_bound_s, problem.settings.max_makespan_factor)
 
 
-def _finish(problem: _Problem, result: PlanResult) -> tuple[bool, float]:
-    """How good another planner's trajectory is as a start: ``(short of a target, last arrival (s))``,
-    smaller first (``given_starts = "best"``)."""
-    from fiberplan.metrics import arrival_times
-
-    arrivals = arrival_times(problem.scenario, result.trajectory)[problem.scenario.has_target]
-    if not np.all(np.isfinite(arrivals)):
-        return True, float(result.trajectory.duration_s)
-    return False, float(arrivals.max(initial=0.0))
-
-
 def _trajectory_guess(problem: _Problem, result: PlanResult) -> tuple[np.ndarray, float]:
     """Resample another planner's trajectory to ``T + 1`` knots ending at the target."""
     from fiberplan.metrics import arrival_times
@@ -179,7 +168,11 @@ def solve_central(
         solution.warm_start_s[name] = float(given[name].plan_wall_s)
     others = {name: result for name, result in given.items() if name != "central"}
     if settings.given_starts == "best" and len(others) > 1:
-        best = min(others, key=lambda name: _finish(problem, others[name]))
+        from fiberplan.metrics import summarize
+
+        # Every target reached first, then the earliest last arrival (the summary's makespan, as compare ranks).
+        ranks = {name: summarize(result) for name, result in others.items()}
+        best = min(others, key=lambda name: (ranks[name]["targets"] - ranks[name]["reached"], ranks[name]["makespan_s"]))
         others = {best: others[best]}
     for name, result in others.items():
         starts.append((name, *_trajectory_guess(problem, result)))
