@@ -46,7 +46,7 @@ def _check_safe(result):
 )
 def test_mpc_small_is_collision_free(instrument, n, kind, seed):
     scenario = make_scenario(instrument, n, kind, seed)
-    result = plan(scenario, "mpc", {"max_duration_factor": 2.0})
+    result = plan(scenario, "mpc", {"max_duration_factor": 2.0, "qp_screen_mm": None})
     _check_safe(result)
     assert result.planner == "mpc"
     if result.stats.get("planner_runs", 1) == 1:
@@ -68,7 +68,7 @@ def test_mpc_reaches_targets_on_small_desi(seed):
 
 def test_mpc_resolves_conflicts_with_qps_on_desi_37():
     scenario = make_scenario("desi", 37, "random", 5)
-    result = plan(scenario, "mpc")
+    result = plan(scenario, "mpc", {"qp_screen_mm": None})  # every positioner in conflict solves
     _check_safe(result)
     assert result.stats["qp_solves"] > 0
     assert 0 < result.stats["qp_fraction"] < 1
@@ -212,7 +212,7 @@ def test_osqp_matches_cvxpy_on_planner_conflicts(monkeypatch):
         return original(self, batch, step)
 
     monkeypatch.setattr(mpc_exec._Block, "solve", spy)
-    plan(make_scenario("desi", 37, "random", 5), "mpc", {"max_duration_factor": 0.5})
+    plan(make_scenario("desi", 37, "random", 5), "mpc", {"qp_screen_mm": None, "max_duration_factor": 0.5})
     assert captured
     for layout, data in captured:
         ws = PositionerQP(layout, OsqpOptions(eps_abs=1e-7, eps_rel=1e-7, max_iter=20000))
@@ -220,6 +220,65 @@ def test_osqp_matches_cvxpy_on_planner_conflicts(monkeypatch):
         assert status == STATUS_SOLVED
         z_ref, _ = _cvxpy_solution(layout, data, None)
         np.testing.assert_allclose(layout.split(x)[0], z_ref, atol=5e-3)
+
+
+def test_screened_conflicts_are_those_whose_qp_optimum_is_the_reference(monkeypatch):
+    """The premise of ``qp_screen``: a QP whose reference keeps every constraint has its optimum on
+    the reference but for the small input terms (checked against a tight solve of each sampled
+    QP), and one whose reference breaks a collision row does not."""
+    from fiberplan.planners.mpc import executors as mpc_exec
+    from fiberplan.planners.mpc.qp import reference_keeps_constraints
+
+    captured = []
+    original = mpc_exec._Block.solve
+
+    def spy(self, batch, step=0):
+        captured.extend((self.layout, batch.data(r)) for r in range(len(batch.index)))
+        return original(self, batch, step)
+
+    monkeypatch.setattr(mpc_exec._Block, "solve", spy)
+    plan(make_scenario("desi", 37, "random", 5), "mpc", {"qp_screen_mm": None, "max_duration_factor": 0.5})
+    assert len(captured) > 50
+
+    def keeps(layout, data):
+        fields = (data.z_ref, data.z_lo, data.z_hi, data.v_prev, data.coef, data.rhs, data.active)
+        return bool(reference_keeps_constraints(layout, *(a[None] for a in fields))[0])
+
+    def solve(layout, data):
+        status, x, _ = PositionerQP(layout, OsqpOptions(eps_abs=1e-7, eps_rel=1e-7, max_iter=20000)).solve(data)
+        assert status == STATUS_SOLVED
+        z, _, slack = layout.split(x)
+        return z, slack
+
+    kept = 0
+    for layout, data in captured[:: max(1, len(captured) // 100)]:
+        if not keeps(layout, data):
+            continue
+        kept += 1
+        z, slack = solve(layout, data)
+        assert np.abs(z - data.z_ref).max() < 0.1  # a lag of a few hundredths of a step at most
+        assert slack.max() < 1e-6
+        # The same QP with the reference 0.5 mm short of one active collision row: not screened,
+        # and its optimum leaves the reference or pays slack.
+        m = int(np.flatnonzero(data.active)[0])
+        k = int(np.argmax(np.abs(data.coef[m]).sum(axis=1)))
+        data.rhs[m, k] = data.coef[m, k] @ data.z_ref[k] + 0.5
+        assert not keeps(layout, data)
+        z, slack = solve(layout, data)
+        assert np.abs(z - data.z_ref).max() > 1e-2 or slack.max() > 1e-2
+    assert kept > 20
+
+
+def test_screening_keeps_every_target_and_skips_most_qps():
+    scenario = make_scenario("desi", 37, "random", 5)
+    full = plan(scenario, "mpc", {"qp_screen_mm": None})
+    screened = plan(scenario, "mpc")
+    for result in (full, screened):
+        _check_safe(result)
+        assert summarize(result, verify(scenario, result.trajectory))["reached"] == 37
+    assert full.stats["qp_screened"] == 0
+    assert screened.stats["qp_screened"] > 0
+    assert screened.stats["qp_solves"] < full.stats["qp_solves"] / 2
 
 
 @pytest.mark.parametrize("max_input_change", [None, 0.3])
@@ -264,7 +323,7 @@ def test_qpsolvers_backend_clarabel():
     pytest.importorskip("qpsolvers")
     pytest.importorskip("clarabel")
     scenario = make_scenario("desi", 19, "random", 1)
-    result = plan(scenario, "mpc", {"qp_solver": "clarabel"})
+    result = plan(scenario, "mpc", {"qp_solver": "clarabel", "qp_screen_mm": None})
     _check_safe(result)
     assert result.stats["qp_solves"] > 0
     assert result.stats["qp_failures"] == 0
@@ -288,7 +347,7 @@ def test_forced_osqp_failures_keep_the_plan_safe(monkeypatch):
 
     monkeypatch.setattr(mpc_qp.PositionerQP, "solve_capped", failing_solve)
     scenario = make_scenario("desi", 19, "random", 1)
-    result = plan(scenario, "mpc", {"max_duration_factor": 2.0})
+    result = plan(scenario, "mpc", {"max_duration_factor": 2.0, "qp_screen_mm": None})
     _check_safe(result)
     assert result.stats["qp_solves"] > 0
     assert result.stats["qp_failures"] == result.stats["qp_solves"]
@@ -296,7 +355,7 @@ def test_forced_osqp_failures_keep_the_plan_safe(monkeypatch):
 
 def test_one_iteration_osqp_keeps_the_plan_safe():
     scenario = make_scenario("desi", 19, "random", 2)
-    result = plan(scenario, "mpc", {"osqp_max_iter": 1, "max_duration_factor": 2.0})
+    result = plan(scenario, "mpc", {"osqp_max_iter": 1, "max_duration_factor": 2.0, "qp_screen_mm": None})
     _check_safe(result)
     assert result.stats["qp_failures"] > 0
     assert result.stats["qp_failures"] + result.stats["qp_solved"] + result.stats["qp_inaccurate"] == result.stats["qp_solves"]
@@ -305,12 +364,16 @@ def test_one_iteration_osqp_keeps_the_plan_safe():
 # ----------------------------------------------------------------------------- executors
 def test_parallel_executor_gives_identical_trajectories():
     scenario = make_scenario("desi", 37, "random", 5)
-    seq = plan(scenario, "mpc", {"executor": "sequential"})
-    par = plan(scenario, "mpc", {"executor": "parallel", "workers": 2})
+    seq = plan(scenario, "mpc", {"executor": "sequential", "qp_screen_mm": None})
+    par = plan(scenario, "mpc", {"executor": "parallel", "workers": 2, "qp_screen_mm": None})
     assert seq.stats["qp_solves"] > 0
     assert np.array_equal(seq.trajectory.joints, par.trajectory.joints)
     assert np.array_equal(seq.trajectory.times, par.trajectory.times)
     assert np.array_equal(seq.outcome, par.outcome)
+    # With the screening (the default) too.
+    seq = plan(scenario, "mpc", {"executor": "sequential"})
+    par = plan(scenario, "mpc", {"executor": "parallel", "workers": 2})
+    assert np.array_equal(seq.trajectory.joints, par.trajectory.joints)
 
 
 def test_large_runs_start_idle_workspaces_afresh_and_both_executors_agree(monkeypatch):
@@ -319,7 +382,7 @@ def test_large_runs_start_idle_workspaces_afresh_and_both_executors_agree(monkey
     from fiberplan.planners.mpc import executors, loop
 
     scenario = make_scenario("desi", 37, "random", 5)
-    kept = plan(scenario, "mpc", {"executor": "sequential"})
+    kept = plan(scenario, "mpc", {"executor": "sequential", "qp_screen_mm": None})
     alive = []
     solve = executors._Block.solve
 
@@ -331,8 +394,8 @@ def test_large_runs_start_idle_workspaces_afresh_and_both_executors_agree(monkey
     monkeypatch.setattr(executors._Block, "solve", counted)
     monkeypatch.setattr(loop, "WORKSPACES_KEPT_UP_TO", 10)
     monkeypatch.setattr(loop, "FRESH_AFTER_STEPS", 2)
-    seq = plan(scenario, "mpc", {"executor": "sequential"})
-    par = plan(scenario, "mpc", {"executor": "parallel", "workers": 2})
+    seq = plan(scenario, "mpc", {"executor": "sequential", "qp_screen_mm": None})
+    par = plan(scenario, "mpc", {"executor": "parallel", "workers": 2, "qp_screen_mm": None})
     assert seq.stats["qp_workspaces"] > kept.stats["qp_workspaces"]  # some were started afresh
     assert min(alive[1:]) < max(alive)  # and freed
     assert np.array_equal(seq.trajectory.joints, par.trajectory.joints)

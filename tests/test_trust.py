@@ -126,7 +126,7 @@ def flaky_osqp(monkeypatch):
 @pytest.mark.parametrize(("instrument", "n", "kind"), [("desi", 61, "random"), ("moons-capsules", 19, "unfold")])
 def test_non_finite_or_raising_qp_solves_hold_and_are_counted(flaky_osqp, instrument, n, kind):
     sc = fp.make_scenario(instrument, n, kind, 2)
-    result = fp.plan(sc, "mpc", {"start_schedule": False, "route": "direct"})
+    result = fp.plan(sc, "mpc", {"start_schedule": False, "route": "direct", "qp_screen_mm": None})
     stats = result.stats
     assert flaky_osqp["n"] >= 150
     assert stats["qp_non_finite"] >= 1 and stats["qp_errors"] >= 1
@@ -144,7 +144,7 @@ def test_qpsolvers_backend_exception_is_a_failed_solve(monkeypatch):
 
     monkeypatch.setattr(qpsolvers, "solve_qp", broken)
     sc = fp.make_scenario("desi", 7, "random", 3)
-    result = fp.plan(sc, "mpc", {"qp_solver": "clarabel", "start_schedule": False, "max_duration_factor": 1.5})
+    result = fp.plan(sc, "mpc", {"qp_solver": "clarabel", "start_schedule": False, "max_duration_factor": 1.5, "qp_screen_mm": None})
     assert result.stats["qp_errors"] == result.stats["qp_solves"] > 0
     assert fp.verify(sc, result.trajectory).ok
 

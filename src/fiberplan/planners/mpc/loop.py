@@ -59,7 +59,7 @@ from fiberplan.planners.mpc.conflicts import build_qp_batch, select_conflicts
 from fiberplan.planners.mpc.deadlock import Deadlocks, Level
 from fiberplan.planners.mpc.executors import make_executor
 from fiberplan.planners.mpc.priority import outranks
-from fiberplan.planners.mpc.qp import USABLE, OsqpOptions, QpLayout, QpWeights
+from fiberplan.planners.mpc.qp import USABLE, OsqpOptions, QpLayout, QpWeights, reference_keeps_constraints
 from fiberplan.planners.mpc.routes import RouteBook, route_path
 from fiberplan.planners.mpc.schedule import StartSchedule, start_schedule
 from fiberplan.planners.mpc.settings import MpcSettings
@@ -239,6 +239,11 @@ def _solve_qps(
     if len(sel):
         batch = build_qp_batch(scenario, settings, layout, scenario.pairs[sel], margin_cap[sel], q, own_plan, plan, ref, v_prev, rank,
                                wait_first, boosted, step_rad, lim)
+        if settings.qp_screen_mm is not None:
+            keeps = reference_keeps_constraints(layout, batch.z_ref, batch.z_lo, batch.z_hi, batch.v_prev, batch.coef, batch.rhs,
+                                                batch.active, settings.qp_screen_mm)
+            stats.qp_screened += int(keeps.sum())
+            batch = batch.take(np.flatnonzero(~keeps))
         result = executor.solve(batch, step)
         idx = batch.index
         n_qp = len(idx)

@@ -253,6 +253,30 @@ class QpLayout:
         return x[self.iz], x[self.iv], x[self.isl]
 
 
+def reference_keeps_constraints(
+    layout: QpLayout, z_ref: np.ndarray, z_lo: np.ndarray, z_hi: np.ndarray, v_prev: np.ndarray, coef: np.ndarray,
+    rhs: np.ndarray, active: np.ndarray, clearance_mm: float = 0.0, tol: float = 1e-9,
+) -> np.ndarray:
+    """Which of ``m`` positioners' references keep every constraint of their QP with zero slack
+    (the :class:`QpData` fields with a leading ``m`` axis in, ``(m,)`` booleans out).
+
+    The reference ``z_ref`` read as the plan ``z``: its inputs ``v(k-1) = z(k) - z(k-1)``
+    (``z(0) = 0``) within ``[-1, 1]`` and, with ``max_input_change``, their changes (from
+    ``v_prev``) within it; ``z`` within the hard stops; every active collision row
+    ``c_m(k) . z(k) >= r_m(k) + clearance_mm``. Such a QP's constraints leave its optimum where its cost puts
+    it: on the reference but for the small input terms. ``tol`` absorbs the rounding of
+    ``z_ref`` (steps of exactly one full step)."""
+    v = np.diff(z_ref, axis=1, prepend=np.zeros_like(z_ref[:, :1]))
+    ok = np.all(np.abs(v) <= 1.0 + tol, axis=(1, 2))
+    ok &= np.all((z_ref >= z_lo[:, None, :] - tol) & (z_ref <= z_hi[:, None, :] + tol), axis=(1, 2))
+    if layout.max_input_change is not None:
+        dv = np.diff(v, axis=1, prepend=v_prev[:, None, :])
+        ok &= np.all(np.abs(dv) <= layout.max_input_change + tol, axis=(1, 2))
+    lhs = np.einsum("mshc,mhc->msh", coef, z_ref)
+    ok &= np.all((lhs >= rhs + clearance_mm) | ~active[:, :, None], axis=(1, 2))
+    return ok
+
+
 @dataclass(frozen=True)
 class OsqpOptions:
     """OSQP settings used by every workspace."""

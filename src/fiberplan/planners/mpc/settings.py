@@ -107,6 +107,10 @@ class MpcSettings(RouteSettings):
                              group="solver")
     osqp_eps: float = setting(1e-3, "OSQP absolute and relative tolerance", low=0.0, high=1.0, low_open=True, group="solver")
     osqp_max_iter: int = setting(400, "OSQP iteration limit per solve", low=1, high=1_000_000, group="solver")
+    qp_screen_mm: float | None = setting(0.1, "a positioner in conflict whose reference keeps every constraint of its QP, the collision "
+                                         "rows by at least this much, takes the reference without solving (null: every one solves)",
+                                         unit="mm", low=0.0, high=100.0, optional=True, group="solver",
+                                         kind="float")
 
     @classmethod
     def for_instrument(cls, instrument: Instrument) -> MpcSettings:
@@ -130,6 +134,7 @@ class MpcSettings(RouteSettings):
             priority_margin_mm=round(0.4 * step_mm, 4),
             safety_margin_mm=default_safety_margin_mm(instrument),
             conflict_radius_mm=round(4.0 * step_mm, 4),
+            qp_screen_mm=round(0.4 * step_mm, 4),
             max_duration_extra_s=instrument.full_turn_s,
         )
         return instrument_defaults(instrument, "mpc", defaults)

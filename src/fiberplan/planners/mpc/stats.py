@@ -15,6 +15,7 @@ class RunStats:
     """Counters of one run, filled by the loop; :meth:`qp_dict` gives the QP part of ``PlanResult.stats``."""
 
     qp_solves: int = 0
+    qp_screened: int = 0
     qp_solved: int = 0
     qp_inaccurate: int = 0
     qp_failures: int = 0
@@ -50,6 +51,7 @@ class RunStats:
         return {
             "n_steps": n_steps,
             "qp_solves": self.qp_solves,
+            "qp_screened": self.qp_screened,
             "qp_solved": self.qp_solved,
             "qp_inaccurate": self.qp_inaccurate,
             "qp_failures": self.qp_failures,
