@@ -556,3 +556,29 @@ def test_waiting_rule_that_frees_no_one_escalates_after_one_window():
     arrive = arrival_times(scenario, result.trajectory)
     assert np.all(np.isfinite(arrive))
     assert arrive[leader] <= 2.2 and arrive[waiter] <= 2.2  # 2.52 and 2.16 s before
+
+
+@pytest.mark.parametrize("instrument", ["desi", "moons"])
+def test_refresh_keeps_exact_clearances_below_its_threshold_and_lower_bounds_above(instrument):
+    """``SafetyLayer.refresh(..., exact_below)``: along random steps, every pair's value is exact
+    where it is below the threshold, and elsewhere at least the threshold and at most the exact
+    clearance (a lower bound), so comparisons with any threshold below it read the same."""
+    sc = make_scenario(instrument, 61, "random", 3)
+    layer = SafetyLayer(sc, 0.05)
+    step = sc.instrument.speeds_rad_s * MpcSettings.for_instrument(sc.instrument).dt_s
+    rng = np.random.default_rng(5)
+    q = sc.start.copy()
+    c_lazy = layer.clearance(q, sc.pairs)
+    threshold = float(np.quantile(c_lazy, 0.4))
+    bounded = 0
+    for _ in range(30):
+        q_next = np.clip(q + rng.uniform(-1, 1, q.shape) * step * (rng.random(len(q)) < 0.7)[:, None],
+                         sc.instrument.limits_rad[:, 0], sc.instrument.limits_rad[:, 1])
+        layer.refresh(c_lazy, q, q_next, threshold)
+        q = q_next
+        exact = layer.clearance(q, sc.pairs)
+        below = c_lazy < threshold
+        np.testing.assert_array_equal(c_lazy[below], exact[below])
+        assert np.all(exact[~below] >= c_lazy[~below])
+        bounded += int(np.sum(c_lazy[~below] < exact[~below]))
+    assert bounded > 0  # some values were bounds, not recomputed

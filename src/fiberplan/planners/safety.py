@@ -57,13 +57,28 @@ class SafetyLayer:
             return np.zeros(0)
         return pair_clearance(self.inst, self.base, self.orient, joints, pairs).clearance.min(axis=-1)
 
-    def refresh(self, c_now: np.ndarray, q: np.ndarray, q_next: np.ndarray) -> None:
+    def refresh(self, c_now: np.ndarray, q: np.ndarray, q_next: np.ndarray, exact_below: float | None = None) -> None:
         """Update ``c_now`` (the clearance of every scenario pair) in place after the step ``q -> q_next``:
-        only pairs with a positioner that moved change."""
-        if len(self.pairs):
-            moved = np.any(q_next != q, axis=1)
-            changed = np.flatnonzero(moved[self.pairs[:, 0]] | moved[self.pairs[:, 1]])
-            c_now[changed] = self.clearance(q_next, self.pairs[changed])
+        only pairs with a positioner that moved change.
+
+        With ``exact_below``, a pair is computed exactly only where it may be closer than that:
+        elsewhere ``c_now`` holds a lower bound, the last value less the motion bound of both
+        positioners' steps since (a clearance changes by at most ``M_i + M_j`` over a step, the
+        certificate's bound), computed exactly once the bound falls below ``exact_below``. Every
+        value below ``exact_below`` is then exact, and every other one is at least
+        ``exact_below``: a caller whose every decision compares ``c_now`` with thresholds below
+        ``exact_below`` decides exactly as with exact values everywhere (the ``mpc``: at 50,000
+        positioners 12 % of the exact computations)."""
+        if not len(self.pairs):
+            return
+        i, j = self.pairs[:, 0], self.pairs[:, 1]
+        moved = np.any(q_next != q, axis=1)
+        changed = np.flatnonzero(moved[i] | moved[j])
+        if exact_below is not None:
+            motion = motion_bound(self.rho, q_next - q)
+            c_now[changed] -= motion[i[changed]] + motion[j[changed]]
+            changed = changed[c_now[changed] < exact_below]
+        c_now[changed] = self.clearance(q_next, self.pairs[changed])
 
     def _between(self, pairs: np.ndarray, qi: np.ndarray, qj: np.ndarray) -> np.ndarray:
         """Clearance of row-matched pairs with ``i`` at ``qi`` and ``j`` at ``qj``."""

@@ -117,6 +117,10 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     q = scenario.start.copy()
     goal = goal_prev = goal_final.copy()
     c_now = safety.clearance(q, pairs)
+    # Every decision on c_now compares it with a threshold below this (the conflict range and the
+    # look-ahead of select_conflicts, the safety layer's floor plus a step of both, the deadlock
+    # rules' conflict radius): above it, c_now may hold a lower bound (SafetyLayer.refresh).
+    exact_below = max(settings.conflict_radius_mm + 2 * H * step_mm, float(safety.pair_floor.max(initial=0.0)) + 2 * step_mm) + 1e-6
     plan = straight_path(q, np.where((start_step > 0)[:, None], q, goal), step_rad, H)  # published plans (what neighbours see)
     own_plan = plan.copy()  # linearisation points of each positioner's own QP
     v_prev = np.zeros((n, 2))
@@ -201,7 +205,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             plan = np.where(late[:, None, None], new_plan, shifted)
             own_plan = np.where(late[:, None, None], q_next[:, None, :], shifted)
             v_prev = (q_next - q) / step_rad
-            safety.refresh(c_now, q, q_next)  # clearances change only for pairs with a moving positioner
+            safety.refresh(c_now, q, q_next, exact_below)  # exact where a decision below reads them
             q = q_next
             history.append(q.copy())
             if progress is not None and step % 20 == 0:
