@@ -278,7 +278,9 @@ def test_profiles_the_verifier_refuses_are_fitted_again_then_follow_their_sample
     positioners follow their planned samples: what is returned is verified all the same."""
     from fiberplan import profiles as module
 
-    run = fp.plan(desi_random_61, "mpc")
+    # The plan without the QP screening: its motion has neighbours close enough for unbounded
+    # corridors to cut through (the screened plan of this scenario happens to have none).
+    run = fp.plan(desi_random_61, "mpc", {"qp_screen_mm": None})
     unbounded = lambda self, i, *rest: np.full(self.near_t.shape[1], np.inf)  # noqa: E731
     monkeypatch.setattr(module._Room, "half", unbounded)
     monkeypatch.setattr(module._Room, "left", unbounded)
