@@ -292,6 +292,11 @@ retraction of the short ones alone completes, of the whole group (their neighbou
 the bound against 1.66-3.33 x through the datum."""
 
 
+def _at_bound(makespan_s: float, bound_s: float, dt_s: float) -> bool:
+    """A plan's makespan on the lower bound (within half a control step: the grid rounds it up)."""
+    return makespan_s <= bound_s + 0.5 * dt_s
+
+
 PRIORITIZED_SHAPES = ((False, 0), (True, 0), (True, 1), (True, 2), (True, 3))
 """The ``prioritized`` planner's ``(late_corners, late_longest)`` tried for the whole move (each
 with :data:`PRIORITIZED_SLACKS`): as reference 003's schedule; then with each delayed positioner
@@ -336,7 +341,7 @@ def _scheduled(leg: Scenario, opts: _Options, shapes: tuple[tuple[bool, int], ..
                 best = ((short, makespan if short == 0 else 0.0), joints, reached, how)
             if short == 0:
                 break
-        if best is not None and best[0][0] == 0 and best[0][1] <= bound_s + 0.5 * opts.dt_s:
+        if best is not None and best[0][0] == 0 and _at_bound(best[0][1], bound_s, opts.dt_s):
             break  # at the lower bound: no shape can be shorter
     return None if best is None else (best[1], best[2], best[3], best[0][1])
 
@@ -371,12 +376,12 @@ def _prioritized(scenario: Scenario, opts: _Options) -> dict[str, list[_Piece]]:
     joints, reached, how, makespan = found
     left_short = bool((scenario.has_target & ~reached).any())
     bound_s = lower_bound_s(scenario)
-    at_bound = not left_short and makespan <= bound_s + 0.5 * opts.dt_s
+    at_bound = not left_short and _at_bound(makespan, bound_s, opts.dt_s)
     if not at_bound:  # the other shapes: the shortest complete plan of them all
         shaped = _scheduled(scenario, opts, PRIORITIZED_SHAPES[1:])
         if shaped is not None and not (scenario.has_target & ~shaped[1]).any() and (left_short or shaped[3] < makespan):
             joints, reached, how, makespan = shaped
-            at_bound = makespan <= bound_s + 0.5 * opts.dt_s
+            at_bound = _at_bound(makespan, bound_s, opts.dt_s)
     found_pieces: dict[str, list[_Piece]] = {}
     if not (scenario.has_target & ~reached).any():
         found_pieces["prioritized"] = [_Piece(f"prioritized (reference 003's schedule, {how})", joints,
