@@ -17,28 +17,16 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import machine_info
+from scaling import write
+from trajectory_hashes import parse_sets
 
 VARIANTS = {"off": {"qp_screen_mm": None}, "default": {}}
-
-
-def parse_sets(text: str) -> list[tuple[str, int, str, int]]:
-    """``desi:500:random:0-19,...`` -> (instrument, n, kind, seed) per scenario."""
-    out = []
-    for item in filter(None, text.split(",")):
-        try:
-            inst, n, kind, seeds = item.split(":")
-            lo, _, hi = seeds.partition("-")
-            out += [(inst, int(n), kind, s) for s in range(int(lo), int(hi or lo) + 1)]
-        except ValueError:
-            sys.exit(f"--sets: expected instrument:N:kind:first-last such as desi:500:random:0-19, found {item!r}")
-    return out
 
 
 def one(inst: str, n: int, kind: str, seed: int) -> dict:
@@ -97,15 +85,14 @@ def main() -> None:
     data = json.loads(args.out.read_text()) if args.out.exists() else {"name": "qp_screen", "rows": []}
     data.update({"command": " ".join(["python", *sys.argv]), "machine": machine_info(("osqp",))})
     done = {r["scenario"] for r in data["rows"]}
-    for inst, n, kind, seed in parse_sets(args.sets):
+    runs = [(inst, n, kind, seed) for inst, n, kind, seeds in parse_sets(args.sets) for seed in seeds]
+    for inst, n, kind, seed in runs:
         if f"{inst}:{n}:{kind}:{seed}" in done:
             continue
         row = one(inst, n, kind, seed)
         data["rows"].append(row)
         data["date_utc"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
-        tmp = args.out.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(data, indent=1))
-        os.replace(tmp, args.out)
+        write(args.out, data)
         print(json.dumps(row), flush=True)
 
 
