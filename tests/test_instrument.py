@@ -86,3 +86,21 @@ def test_negative_speed_rejected(tmp_path):
     path.write_text(tomli_w.dumps(data))
     with pytest.raises(InstrumentError, match="beta_speed must be a finite number > 0"):
         load_instrument(path)
+
+
+def test_an_instrument_hashes_once_as_equality_says_and_not_across_a_pickle():
+    """The cached hash (``Instrument.__hash__``) agrees with ``==``: an equal instrument read
+    again hashes the same, a changed field changes equality and (here) the hash, and a pickled
+    copy carries no cached value (string hashes differ between processes)."""
+    import dataclasses
+    import pickle
+
+    moons = load_instrument("moons")
+    assert hash(moons) == hash(moons) and moons.__dict__["_hash"] == hash(moons)  # computed once, kept
+    again = load_instrument("moons")
+    assert again == moons and hash(again) == hash(moons)
+    copy = pickle.loads(pickle.dumps(moons))
+    assert "_hash" not in copy.__dict__ and copy == moons and hash(copy) == hash(moons)
+    wider = dataclasses.replace(moons, pitch_mm=moons.pitch_mm + 1.0)
+    assert wider != moons and hash(wider) != hash(moons)
+    assert {moons: 1}[again] == 1  # usable as a key, as the geometry's caches use it

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Literal
 
 import numpy as np
@@ -235,6 +235,23 @@ class Instrument:
                 )
         if not (self.within_limits(np.array(self.datum_rad))):
             raise InstrumentError(f"instrument {self.name!r}: datum {np.degrees(self.datum_rad)} deg is outside the joint limits")
+
+    def __hash__(self) -> int:
+        """The hash of the fields ``==`` compares, computed once per object. The geometry's
+        tables are cached per instrument (``functools.lru_cache``), so an instrument is hashed
+        at every distance call: the generated hash walks every capsule, polygon and motor field
+        each time, 10 us on MOONS' zones (34 capsules and polygons), about 10 s of a MOONS 7
+        plan. Not pickled (:meth:`__getstate__`): string hashes differ between processes."""
+        cached = self.__dict__.get("_hash")
+        if cached is None:
+            cached = hash(tuple(getattr(self, f.name) for f in fields(self) if (f.compare if f.hash is None else f.hash)))
+            object.__setattr__(self, "_hash", cached)
+        return cached
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state.pop("_hash", None)
+        return state
 
     def _check_zones(self) -> None:
         names = [c.name for c in self.capsules if not c.zone] + [p.name for p in self.polygons]
