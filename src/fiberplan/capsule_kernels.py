@@ -334,16 +334,37 @@ def zone_smallest(si: np.ndarray, ei: np.ndarray, ci: np.ndarray, i_index: np.nd
     clearance over the pair's combinations (``pair_combos[pair_offsets[p]:pair_offsets[p + 1]]``),
     lowered to ``-(depth + radii)`` where the discs overlap and a zone lies inside the other's
     polygon; the smallest over the pairs."""
+    n_p = pair_a.shape[0]
+    bounds = np.empty(n_p)
+    order = np.empty(n_p, dtype=np.int64)
     for m in range(i_index.shape[0]):
         u, v = i_index[m], j_index[m]
         best = np.inf
-        for p in range(pair_a.shape[0]):
+        n_exact = 0
+        for p in range(n_p):
             za, zb = pair_a[p], pair_b[p]
             dx, dy = ci[u, za, 0] - cj[v, zb, 0], ci[u, za, 1] - cj[v, zb, 1]
             bound = np.sqrt(dx * dx + dy * dy) - disc_radius[za] - disc_radius[zb]
             if bound >= exact_below:
                 best = _minimum(best, bound)
                 continue
+            # The pairs to compute exactly, in the order of their bounds (insertion sort: a few pairs).
+            bounds[p] = bound
+            k = n_exact
+            while k > 0 and bounds[order[k - 1]] > bound:
+                order[k] = order[k - 1]
+                k -= 1
+            order[k] = p
+            n_exact += 1
+        for r in range(n_exact):
+            p = order[r]
+            bound = bounds[p]
+            # A pair whose discs keep clear (no polygon depth then) by more than the smallest so
+            # far cannot lower it: its exact clearance is at least its bound. The rest, bounded
+            # further, neither (1 nm of slack for the rounding of the exact distances).
+            if bound > 0.0 and bound - 1e-6 >= best:
+                break
+            za, zb = pair_a[p], pair_b[p]
             value = 0.0
             for n in range(pair_offsets[p], pair_offsets[p + 1]):
                 k = pair_combos[n]
