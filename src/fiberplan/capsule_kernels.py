@@ -333,7 +333,8 @@ def zone_smallest(si: np.ndarray, ei: np.ndarray, ci: np.ndarray, i_index: np.nd
     per zone pair, the discs' bound where it is at least ``exact_below``, else the smallest exact
     clearance over the pair's combinations (``pair_combos[pair_offsets[p]:pair_offsets[p + 1]]``),
     lowered to ``-(depth + radii)`` where the discs overlap and a zone lies inside the other's
-    polygon; the smallest over the pairs."""
+    polygon; the smallest over the pairs. The exact pairs are taken in the order of their bounds
+    and the rest skipped once a bound exceeds the smallest so far: the same value."""
     n_p = pair_a.shape[0]
     bounds = np.empty(n_p)
     order = np.empty(n_p, dtype=np.int64)
