@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -26,6 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import machine_info
+from scaling import write
 
 
 def excursions_deg(start: np.ndarray, target: np.ndarray, joints: np.ndarray) -> np.ndarray:
@@ -77,9 +76,7 @@ def main() -> None:
             "machine": machine_info(("casadi",)), "command": " ".join(["python", *sys.argv]), "rows": []}
     for seed in seeds:
         data["rows"].append(one(args.instrument, args.n, seed, args.planner, args.beyond_deg))
-        tmp = args.out.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(data, indent=1))
-        os.replace(tmp, args.out)  # after every seed: an interrupted run keeps what it finished
+        write(args.out, data)  # after every seed, atomically: an interrupted run keeps what it finished
         r = data["rows"][-1]
         key = f"positioners_beyond_{args.beyond_deg:g}_deg"
         print(f"seed {seed}: central {r['central']['makespan_s']:.2f} s, {r['central'][key]} beyond; "

@@ -241,7 +241,8 @@ class Instrument:
         tables are cached per instrument (``functools.lru_cache``), so an instrument is hashed
         at every distance call: the generated hash walks every capsule, polygon and motor field
         each time, 10 us on MOONS' zones (34 capsules and polygons; about a million calls in
-        a MOONS 7 plan, ~4 % of its CPU time). Not pickled (:meth:`__getstate__`): string hashes differ between processes."""
+        a MOONS 7 plan, ~4 % of its CPU time). Not pickled (:meth:`__getstate__`): string
+        hashes differ between processes."""
         cached = self.__dict__.get("_hash")
         if cached is None:
             cached = hash(tuple(getattr(self, f.name) for f in fields(self) if (f.compare if f.hash is None else f.hash)))
