@@ -72,7 +72,8 @@ class SafetyLayer:
         if not len(self.pairs):
             return
         i, j = self.pairs[:, 0], self.pairs[:, 1]
-        moved = np.any(q_next != q, axis=1)
+        step = q_next != q
+        moved = step[:, 0] | step[:, 1]
         changed = np.flatnonzero(moved[i] | moved[j])
         if exact_below is not None:
             motion = motion_bound(self.rho, q_next - q)

@@ -31,6 +31,7 @@ import numpy as np
 
 from fiberplan.layout import neighbour_lists
 from fiberplan.planners.mpc.detour import PairResolution, detour_route, pair_resolution
+from fiberplan.planners.mpc.kernels import time_to_go
 from fiberplan.planners.mpc.priority import outranks, ranks
 from fiberplan.planners.mpc.routes import RouteBook
 from fiberplan.planners.mpc.settings import MpcSettings
@@ -117,7 +118,7 @@ class Deadlocks:
 
         A waiter counts as progressing while the neighbour it waits for is on its way, and a
         positioner holding (before its start, or at a timed waypoint) as well."""
-        ttg = np.max(np.abs(self.goal_final - q) / self.speeds, axis=1)
+        ttg = time_to_go(q, self.goal_final, self.speeds)  # np.max(np.abs(goal - q) / speeds, axis=1), compiled
         better = ttg < self.best_ever - self.progress_eps
         self.best_ever = np.where(better, ttg, self.best_ever)
         first = np.maximum(self.wait_first, 0)
@@ -288,9 +289,7 @@ class Deadlocks:
         goal[self.waiting] = self.wait_q[self.waiting]
         self.ever_waited |= self.waiting
         goal[fold, 1] = self.datum[fold, 1]
-        for who in self.routes:
-            if not holding[who]:
-                goal[who] = self.routes.heading(who)
+        self.routes.headings(goal, holding)
         turning = self.level == Level.TURNING
         goal[turning, 1] = self.datum[turning, 1]
         return goal

@@ -58,6 +58,7 @@ from fiberplan.planners.motors import govern, governs, hold_for_ramps
 from fiberplan.planners.mpc.conflicts import build_qp_batch, select_conflicts
 from fiberplan.planners.mpc.deadlock import Deadlocks, Level
 from fiberplan.planners.mpc.executors import make_executor
+from fiberplan.planners.mpc.kernels import straight_reference
 from fiberplan.planners.mpc.priority import outranks
 from fiberplan.planners.mpc.qp import USABLE, OsqpOptions, QpLayout, QpWeights, reference_keeps_constraints
 from fiberplan.planners.mpc.routes import RouteBook, route_path
@@ -141,7 +142,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers, fresh_after)
     try:
         for step in range(max_steps):
-            at_goal = np.all(q == goal_final, axis=1)
+            at_goal = _both(q == goal_final)
             if np.all(at_goal):
                 break
             if deadlocks.nothing_can_progress(step, at_goal):
@@ -163,12 +164,13 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             goal = goal_prev = deadlocks.goals(step, q, at_goal, holding, fold)
 
             # --- the reference (time-optimal toward the goal, or along the route), then the QPs.
-            ref = straight_path(q, goal, step_rad, H)
+            ref = np.empty((n, H, 2))
+            straight_reference(q, goal, step_rad, ref)  # straight_path(q, goal, step_rad, H), compiled
             routes.reference(ref, q, unstarted, step_rad, step)
             q_next, new_plan = _solve_qps(scenario, settings, layout, executor, stats, sel, margin_cap, q, own_plan, plan, ref, v_prev,
                                           rank, deadlocks.wait_first, boosted, step_rad, step)
             # Snap onto the goal when within a small fraction of a step of it.
-            near = np.all(np.abs(goal - q_next) <= 0.05 * step_rad, axis=1) & np.all(np.abs(goal - q) <= step_rad, axis=1)
+            near = _both(np.abs(goal - q_next) <= 0.05 * step_rad) & _both(np.abs(goal - q) <= step_rad)
             q_next[near] = goal[near]
             q_next[scenario.locked] = q[scenario.locked]  # locked positioners never move
             # A non-finite step (none is known to arise: every QP solution is checked) holds.
@@ -216,6 +218,11 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         progress(1.0)
     return _result(scenario, settings, np.stack(history), stats, deadlocks, schedule, schedule_wall_s, start_step, n_slots,
                    stopped_stalled, step)
+
+
+def _both(rows: np.ndarray) -> np.ndarray:
+    """``np.all(rows, axis=1)`` of an ``(N, 2)`` boolean array, without numpy's slow reduction over two columns."""
+    return rows[:, 0] & rows[:, 1]
 
 
 def _recent_speeds(history: list[np.ndarray], h: float, ramp_s: float | None) -> tuple[np.ndarray, np.ndarray] | None:

@@ -38,7 +38,8 @@ from fiberplan import _fork
 from fiberplan.geometry import capsule_segments, capsule_tables, combo_clearances, smallest_clearance
 from fiberplan.kinematics import straight_path
 from fiberplan.layout import neighbour_lists
-from fiberplan.planners.mpc.grid import JointGrid, dilate
+from fiberplan.planners.mpc.grid import JointGrid
+from fiberplan.planners.mpc.kernels import space_time_cells
 from fiberplan.scenario import Scenario
 
 __all__ = ["SPLIT_ABOVE", "StartSchedule", "StartScheduler", "space_time_path", "start_schedule", "timed_waypoints"]
@@ -75,33 +76,8 @@ def space_time_path(free: np.ndarray, start: tuple[int, int], goal: tuple[int, i
         one nearest ``start`` (Chebyshev), so the path tends to wait at its start (a delay)
         rather than on its way.
     """
-    n_layers = free.shape[0]
-    if not free[0][start]:
-        return None
-    reach = np.zeros_like(free)
-    reach[0][start] = True
-    # Layers from which the goal stays free to the end.
-    stay = np.flip(np.logical_and.accumulate(np.flip(free[:, goal[0], goal[1]])))
-    if not stay.any():
-        return None
-    arrive = 0
-    while not (reach[arrive][goal] and stay[arrive]):
-        arrive += 1
-        if arrive == n_layers:
-            return None
-        reach[arrive] = dilate(reach[arrive - 1]) & free[arrive]
-        if not reach[arrive].any():
-            return None
-    moves = np.array([(da, db) for da in (-1, 0, 1) for db in (-1, 0, 1)])
-    cells = [np.array(goal)]
-    s = np.array(start)
-    for layer in range(arrive, 0, -1):
-        cand = cells[-1] + moves
-        inside = np.all((cand >= 0) & (cand < free.shape[1:]), axis=1)
-        cand = cand[inside]
-        cand = cand[reach[layer - 1][cand[:, 0], cand[:, 1]]]
-        cells.append(cand[np.argmin(np.max(np.abs(cand - s), axis=1))])
-    return np.array(cells[::-1])
+    cells = space_time_cells(np.ascontiguousarray(free, dtype=bool), int(start[0]), int(start[1]), int(goal[0]), int(goal[1]))
+    return cells if len(cells) else None
 
 
 def timed_waypoints(cells: np.ndarray, coords: np.ndarray, cell_steps: int) -> tuple[np.ndarray, np.ndarray]:
