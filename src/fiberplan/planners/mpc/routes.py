@@ -101,7 +101,7 @@ class RouteBook:
     The questions asked at every control step (who holds, the time-to-go, the references, who
     passed a waypoint, where each heads) are answered for every route at once from flat arrays
     (:class:`_Packed`, rebuilt when a route starts or ends); the answers are those of asking
-    each route alone, bit for bit (``tests/test_mpc.py``). With 50,000 DESI positioners about
+    each route alone, bit for bit (``tests/test_mpc_kernels.py``). With 50,000 DESI positioners about
     500 follow a route at any step.
     """
 
