@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fiberplan.errors import PlannerError
 from fiberplan.kinematics import straight_path
 from fiberplan.planners.mpc.grid import dilate
-from fiberplan.planners.mpc.kernels import resting, straight_reference, time_to_go
-from fiberplan.planners.mpc.routes import ROUTE_PASS, RouteBook, route_path
+from fiberplan.planners.mpc.kernels import holds_at_goal, straight_reference, time_to_go
+from fiberplan.planners.mpc.routes import ROUTE_PASS, Route, RouteBook, route_path
 from fiberplan.planners.mpc.schedule import space_time_path
 
 STEP = np.array([0.0101, 0.0173])
@@ -32,115 +33,189 @@ def test_straight_reference_is_straight_path_bit_for_bit(n_steps):
     assert out.tobytes() == straight_path(q, goal, STEP, n_steps).tobytes()
 
 
-def test_time_to_go_and_resting_are_the_numpy_forms_bit_for_bit():
+def test_time_to_go_and_the_resting_test_are_the_numpy_forms_bit_for_bit():
     rng = np.random.default_rng(3)
     q, goal = _configurations(rng, 2000)
     speeds = np.array([0.3, 0.45])
-    assert time_to_go(q, goal, speeds).tobytes() == np.max(np.abs(goal - q) / speeds, axis=1).tobytes()
+    odd = q.copy()
+    odd[rng.random(q.shape) < 0.05] = np.nan  # a NaN in either joint stays one, as np.max keeps it
+    odd[rng.random(q.shape) < 0.02] = np.inf
+    for config in (q, odd):
+        assert time_to_go(config, goal, speeds).tobytes() == np.max(np.abs(goal - config) / speeds, axis=1).tobytes()
     plan = np.repeat(q[:, None, :], 4, axis=1)
-    moving = rng.random(len(q)) < 0.3
-    plan[moving, rng.integers(0, 4, moving.sum())] += 1e-9
+    moving = np.flatnonzero(rng.random(len(q)) < 0.3)
+    plan[moving, rng.integers(0, 4, len(moving)), rng.integers(0, 2, len(moving))] += 1e-9  # one joint at one step
     home = rng.random(len(q)) < 0.5
     goal[home] = q[home]  # at the goal: resting unless the plan moves
+    goal[np.flatnonzero(home)[::7], 1] += 1e-12  # at the goal in alpha only
     expected = np.all(q == goal, axis=1) & np.all(plan == q[:, None, :], axis=(1, 2))
-    np.testing.assert_array_equal(resting(q, goal, plan), expected)
+    assert 0 < expected.sum() < home.sum()
+    np.testing.assert_array_equal(holds_at_goal(q, goal, plan), expected)
 
 
-class _OneByOne:
-    """The route book's answers asked of each route alone (its form before the packed arrays)."""
+class _RouteBookBefore:
+    """The route book as it was (``0b16285``): each route asked alone, in Python."""
 
-    def __init__(self, routes: dict[int, tuple[np.ndarray, np.ndarray | None]]) -> None:
-        self.routes = {w: [way, 0, dep] for w, (way, dep) in routes.items()}
+    def __init__(self) -> None:
+        self._routes: dict[int, Route] = {}
 
-    def waits(self, w: int, step: int) -> bool:
-        way, pos, dep = self.routes[w]
-        return dep is not None and pos + 1 < len(way) and step < dep[pos + 1]
+    def __iter__(self):
+        return iter(self._routes)
 
-    def holding(self, step, q, holding):
-        for w, (way, pos, dep) in self.routes.items():
-            if self.waits(w, step) and np.all(np.abs(q[w] - way[pos]) <= ROUTE_PASS * STEP):
-                holding[w] = True
+    def follow(self, who, waypoints, depart=None) -> None:
+        self._routes[who] = Route(waypoints, 0, depart)
 
-    def time_to_go(self, q, goal, speeds, ttg):
-        out = ttg.copy()
-        for w, (way, pos, _) in self.routes.items():
-            legs = np.max(np.abs(np.diff(np.vstack([way, goal[w]]), axis=0)) / speeds, axis=1)
-            tail = np.append(np.cumsum(legs[::-1])[::-1], 0.0)
-            out[w] = np.max(np.abs(way[pos] - q[w]) / speeds) + tail[pos]
-        return out
+    def drop(self, who) -> None:
+        self._routes.pop(who, None)
 
-    def reference(self, ref, q, unstarted, step):
-        for w, (way, pos, dep) in self.routes.items():
-            if not unstarted[w]:
-                ref[w] = route_path(q[w], way, pos, STEP, ref.shape[1], dep, step)
+    def heading(self, who) -> np.ndarray:
+        route = self._routes[who]
+        return route.waypoints[route.pos]
 
-    def passed(self, step, q, leaving):
-        out = []
-        for w in list(self.routes):
-            way, pos, _ = self.routes[w]
-            if leaving[w]:
-                del self.routes[w]
-            elif self.waits(w, step):
+    def waits_for_departure(self, who, step) -> bool:
+        route = self._routes[who]
+        return route.depart is not None and route.pos + 1 < len(route.waypoints) and step < route.depart[route.pos + 1]
+
+    def holding(self, step, q, step_rad, holding) -> None:
+        for who, route in self._routes.items():
+            depart = route.depart
+            if depart is None:
                 continue
-            elif np.all(np.abs(q[w] - way[pos]) <= ROUTE_PASS * STEP):
-                self.routes[w][1] += 1
-                out.append(w)
-                if self.routes[w][1] == len(way):
-                    del self.routes[w]
+            pos = route.pos
+            if pos + 1 < len(depart) and step < depart[pos + 1] and np.all(np.abs(q[who] - route.waypoints[pos]) <= ROUTE_PASS * step_rad):
+                holding[who] = True
+
+    def time_to_go(self, q, goal, speeds, ttg) -> np.ndarray:
+        out = ttg.copy()
+        for who, route in self._routes.items():
+            pos = route.pos
+            out[who] = np.max(np.abs(route.waypoints[pos] - q[who]) / speeds) + route.tail_s(goal[who], speeds)[pos]
+        return out
+
+    def reference(self, ref, q, unstarted, step_rad, step) -> None:
+        n_steps = ref.shape[1]
+        for who, route in self._routes.items():
+            if not unstarted[who]:
+                ref[who] = route_path(q[who], route.waypoints, route.pos, step_rad, n_steps, route.depart, step)
+
+    def passed(self, step, q, step_rad, leaving) -> list[int]:
+        out = []
+        for who in list(self._routes):
+            route = self._routes[who]
+            if leaving[who]:
+                del self._routes[who]
+            elif self.waits_for_departure(who, step):
+                continue
+            elif np.all(np.abs(q[who] - route.waypoints[route.pos]) <= ROUTE_PASS * step_rad):
+                route.pos += 1
+                out.append(who)
+                if route.pos == len(route.waypoints):
+                    del self._routes[who]
         return out
 
 
-def test_the_route_book_answers_as_each_route_asked_alone():
-    rng = np.random.default_rng(11)
-    n, n_steps = 300, 4
-    routes: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
-    for w in rng.choice(n, 120, replace=False).tolist():
-        m = int(rng.integers(1, 6))
-        way = np.cumsum(rng.uniform(-2.5, 2.5, (m, 2)) * STEP, axis=0) + rng.uniform(-1, 1, 2)
-        dep = np.sort(rng.integers(0, 30, m)) if rng.random() < 0.5 else None
-        routes[w] = (way, dep)
-    book, alone = RouteBook(), _OneByOne(routes)
-    for w, (way, dep) in routes.items():
-        book.follow(w, way, dep)
+def _route(rng: np.random.Generator) -> tuple[object, object]:
+    """Waypoints (float, coarse, float32 or a list) and departures (none, int, an int32 list or float)."""
+    m = int(rng.integers(1, 6))
+    way = np.cumsum(rng.uniform(-2.5, 2.5, (m, 2)) * STEP, axis=0) + rng.uniform(-1, 1, 2)
+    kind = int(rng.integers(0, 4))
+    if kind == 1:
+        way = np.round(way, 2)
+    way = way.astype(np.float32) if kind == 2 else way.tolist() if kind == 3 else way
+    r = rng.random()
+    dep = (np.sort(rng.integers(0, 40, m)) if r < 0.3 else np.sort(rng.integers(0, 40, m)).astype(np.int32).tolist() if r < 0.4
+           else np.sort(rng.uniform(0, 40, m)) if r < 0.5 else None)
+    return way, dep
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_the_route_book_answers_as_it_did_route_by_route(seed):
+    # Routes start, are replaced and are dropped between the steps, after the packed arrays were
+    # built; some positioners sit exactly on a waypoint or exactly half a step from one.
+    rng = np.random.default_rng(seed)
+    n, n_steps = 150, 4
+    book, before = RouteBook(), _RouteBookBefore()
     goal = rng.uniform(-1, 1, (n, 2))
     speeds = STEP / 0.1
     q = rng.uniform(-1, 1, (n, 2))
-    for w, (way, _) in routes.items():
-        q[w] = way[0] + rng.uniform(-1.5, 1.5, 2) * STEP
-    passes, holds = 0, 0
+    passes = holds = 0
     for step in range(40):
+        for _ in range(int(rng.integers(0, 8 if step else 60))):
+            who = int(rng.integers(n))
+            if rng.random() < 0.2:
+                book.drop(who)
+                before.drop(who)
+                continue
+            way, dep = _route(rng)
+            first = np.asarray(way, dtype=float)[0]
+            q[who] = first + rng.choice([0.0, 0.5, -0.5, 1.5]) * STEP * rng.choice([0.0, 1.0], 2)  # on, at the pass boundary, or off
+            book.follow(np.int64(who) if rng.random() < 0.5 else who, way, dep)
+            before.follow(who, way, dep)
         unstarted = rng.random(n) < 0.1
-        held_a, held_b = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
-        book.holding(step, q, STEP, held_a)
-        alone.holding(step, q, held_b)
-        np.testing.assert_array_equal(held_a, held_b)
-        holds += int(held_a.sum())
+        held, held_before = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+        book.holding(step, q, STEP, held)
+        before.holding(step, q, STEP, held_before)
+        np.testing.assert_array_equal(held, held_before)
+        holds += int(held.sum())
         ttg = rng.random(n)
-        assert book.time_to_go(q, goal, speeds, ttg).tobytes() == alone.time_to_go(q, goal, speeds, ttg).tobytes()
-        ref_a = np.repeat(q[:, None, :], n_steps, axis=1)
-        ref_b = ref_a.copy()
-        book.reference(ref_a, q, unstarted, STEP, step)
-        alone.reference(ref_b, q, unstarted, step)
-        assert ref_a.tobytes() == ref_b.tobytes()
-        heading_a = goal.copy()
-        book.headings(heading_a, held_a)
-        heading_b = goal.copy()
-        for w, (way, pos, _) in alone.routes.items():
-            if not held_b[w]:
-                heading_b[w] = way[pos]
-        np.testing.assert_array_equal(heading_a, heading_b)
+        assert book.time_to_go(q, goal, speeds, ttg).tobytes() == before.time_to_go(q, goal, speeds, ttg).tobytes()
+        wide = np.repeat(q[:, None, :], 2 * n_steps, axis=1)
+        ref = wide[:, ::2]  # not contiguous: the columns between stay as they were
+        ref_before = ref.copy()
+        book.reference(ref, q, unstarted, STEP, step)
+        before.reference(ref_before, q, unstarted, STEP, step)
+        assert ref.tobytes() == ref_before.tobytes()
+        assert np.all(wide[:, 1::2] == q[:, None, :])
+        heading, heading_before = goal.copy(), goal.copy()
+        book.headings(heading, held)
+        for who in before:
+            if not held_before[who]:
+                heading_before[who] = before.heading(who)
+        assert heading.tobytes() == heading_before.tobytes()
         leaving = rng.random(n) < 0.02
         passed = book.passed(step, q, STEP, leaving)
-        assert passed == alone.passed(step, q, leaving)
+        assert passed == before.passed(step, q, STEP, leaving)
+        assert list(book) == list(before)
         passes += len(passed)
-        assert list(book) == list(alone.routes)
-        q = ref_a[:, 0]  # everyone on a route moves along it
-    assert passes > len(routes) and holds > 0 and len(book) < len(routes)  # the cases were met
+        q = ref[:, 0].copy()  # everyone on a route moves along it
+    assert passes > 40 and holds > 0  # the cases were met
 
 
-def test_a_timed_route_needs_a_departure_per_waypoint():
-    with pytest.raises(ValueError, match="positioner 7"):
+def test_the_route_book_passes_a_waypoint_exactly_half_a_step_away_as_it_did():
+    # The pass test (|q - waypoint| <= ROUTE_PASS x step) at its boundary, where the arithmetic is
+    # exact: waypoints on the origin, positioners exactly half a step (or a hair more) away.
+    half = ROUTE_PASS * STEP
+    offsets = [half, -half, half * np.array([1.0, 0.0]), np.nextafter(half, 1.0), np.zeros(2)]
+    book, before = RouteBook(), _RouteBookBefore()
+    q = np.zeros((2 * len(offsets), 2))
+    for k, off in enumerate(offsets):
+        way = np.array([[0.0, 0.0], [0.05, -0.03], [0.05, 0.02]])
+        for who, dep in ((2 * k, None), (2 * k + 1, np.array([0, 3, 5]))):
+            q[who] = off
+            book.follow(who, way, dep)
+            before.follow(who, way, dep)
+    unstarted = np.zeros(len(q), dtype=bool)
+    for step in range(6):
+        ref, ref_before = np.zeros((len(q), 4, 2)), np.zeros((len(q), 4, 2))
+        book.reference(ref, q, unstarted, STEP, step)
+        before.reference(ref_before, q, unstarted, STEP, step)
+        assert ref.tobytes() == ref_before.tobytes()
+        held, held_before = np.zeros(len(q), dtype=bool), np.zeros(len(q), dtype=bool)
+        book.holding(step, q, STEP, held)
+        before.holding(step, q, STEP, held_before)
+        np.testing.assert_array_equal(held, held_before)
+        leaving = np.zeros(len(q), dtype=bool)
+        assert book.passed(step, q, STEP, leaving) == before.passed(step, q, STEP, leaving)
+    assert ref[0, 0].tobytes() != ref[6, 0].tobytes()  # on the boundary it went on, a hair beyond it did not
+
+
+def test_a_route_is_refused_unless_its_shape_and_departures_fit():
+    with pytest.raises(PlannerError, match="positioner 7: a timed route needs one departure step per waypoint"):
         RouteBook().follow(7, np.zeros((3, 2)), np.zeros(2, dtype=np.int64))
+    with pytest.raises(PlannerError, match=r"positioner 8: a route needs waypoints of shape \(M >= 1, 2\)"):
+        RouteBook().follow(8, np.zeros((0, 2)))
+    with pytest.raises(PlannerError, match="positioner 9"):
+        RouteBook().follow(9, np.zeros(2))
 
 
 def _space_time_path_numpy(free, start, goal):

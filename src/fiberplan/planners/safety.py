@@ -72,8 +72,8 @@ class SafetyLayer:
         if not len(self.pairs):
             return
         i, j = self.pairs[:, 0], self.pairs[:, 1]
-        step = q_next != q
-        moved = step[:, 0] | step[:, 1]
+        joint_moved = q_next != q
+        moved = joint_moved[:, 0] | joint_moved[:, 1]
         changed = np.flatnonzero(moved[i] | moved[j])
         if exact_below is not None:
             motion = motion_bound(self.rho, q_next - q)

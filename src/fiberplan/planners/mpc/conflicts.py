@@ -19,7 +19,7 @@ import numpy as np
 from fiberplan.errors import PlannerError
 from fiberplan.geometry import pair_clearance
 from fiberplan.planners.mpc.executors import QpBatch
-from fiberplan.planners.mpc.kernels import resting as holds_still
+from fiberplan.planners.mpc.kernels import holds_at_goal
 from fiberplan.planners.mpc.priority import outranks
 from fiberplan.planners.mpc.qp import QpLayout
 from fiberplan.planners.mpc.settings import MpcSettings
@@ -39,7 +39,7 @@ def select_conflicts(
     if not len(pairs):
         return np.zeros(0, dtype=np.int64)
     H = plan.shape[1]
-    resting = holds_still(q, goal_prev, plan)  # at its goal with a plan that holds it there
+    resting = holds_at_goal(q, goal_prev, plan)  # at its goal with a plan that holds it there
     near = c_now < settings.conflict_radius_mm + 2 * H * step_mm
     cand = np.flatnonzero(near & ~(resting[pairs[:, 0]] & resting[pairs[:, 1]]))
     sel = cand

@@ -4,7 +4,7 @@ bit with those forms). The control loop's, at every step:
 
 - :func:`straight_reference`: :func:`fiberplan.kinematics.straight_path` into a given array;
 - :func:`time_to_go`: ``np.max(np.abs(goal - q) / speeds, axis=1)``;
-- :func:`resting`: ``np.all(q == goal, axis=1) & np.all(plan == q[:, None, :], axis=(1, 2))``;
+- :func:`holds_at_goal`: ``np.all(q == goal, axis=1) & np.all(plan == q[:, None, :], axis=(1, 2))``;
 - :func:`route_paths`: :func:`fiberplan.planners.mpc.routes.route_path` of many routes at once.
 
 At 50,000 DESI positioners these numpy expressions cost 1-6 ms each per control step, over
@@ -42,12 +42,14 @@ def time_to_go(q: np.ndarray, goal: np.ndarray, speeds: np.ndarray) -> np.ndarra
     """The straight move's time of each positioner, the slower joint's: ``(N,)``."""
     out = np.empty(q.shape[0])
     for i in range(q.shape[0]):
-        out[i] = max(abs(goal[i, 0] - q[i, 0]) / speeds[0], abs(goal[i, 1] - q[i, 1]) / speeds[1])
+        t0 = abs(goal[i, 0] - q[i, 0]) / speeds[0]
+        t1 = abs(goal[i, 1] - q[i, 1]) / speeds[1]
+        out[i] = t1 if (t1 > t0 or t1 != t1) else t0  # a NaN kept, as np.max keeps it
     return out
 
 
 @numba.njit(cache=True, error_model="numpy", nogil=True)
-def resting(q: np.ndarray, goal: np.ndarray, plan: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+def holds_at_goal(q: np.ndarray, goal: np.ndarray, plan: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """Whether each positioner is at its goal with a published plan that holds it there: ``(N,)``."""
     n, n_steps = plan.shape[0], plan.shape[1]
     out = np.zeros(n, dtype=np.bool_)

@@ -142,7 +142,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
     executor = make_executor(settings.executor, layout, options, settings.qp_solver, settings.workers, fresh_after)
     try:
         for step in range(max_steps):
-            at_goal = _both(q == goal_final)
+            at_goal = _both_joints(q == goal_final)
             if np.all(at_goal):
                 break
             if deadlocks.nothing_can_progress(step, at_goal):
@@ -170,7 +170,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
             q_next, new_plan = _solve_qps(scenario, settings, layout, executor, stats, sel, margin_cap, q, own_plan, plan, ref, v_prev,
                                           rank, deadlocks.wait_first, boosted, step_rad, step)
             # Snap onto the goal when within a small fraction of a step of it.
-            near = _both(np.abs(goal - q_next) <= 0.05 * step_rad) & _both(np.abs(goal - q) <= step_rad)
+            near = _both_joints(np.abs(goal - q_next) <= 0.05 * step_rad) & _both_joints(np.abs(goal - q) <= step_rad)
             q_next[near] = goal[near]
             q_next[scenario.locked] = q[scenario.locked]  # locked positioners never move
             # A non-finite step (none is known to arise: every QP solution is checked) holds.
@@ -220,7 +220,7 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
                    stopped_stalled, step)
 
 
-def _both(rows: np.ndarray) -> np.ndarray:
+def _both_joints(rows: np.ndarray) -> np.ndarray:
     """``np.all(rows, axis=1)`` of an ``(N, 2)`` boolean array, without numpy's slow reduction over two columns."""
     return rows[:, 0] & rows[:, 1]
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fiberplan.errors import PlannerError
 from fiberplan.planners.mpc.kernels import route_paths
 
 ROUTE_PASS = 0.5
@@ -84,15 +85,24 @@ class Route:
 
 @dataclass(frozen=True)
 class _Packed:
-    """Every route of a :class:`RouteBook` in flat arrays (in the book's order), for the
-    per-step questions asked of all of them at once."""
+    """Every route of a :class:`RouteBook` in flat arrays, in the book's order, for the per-step
+    questions asked of all of them at once.
 
-    who: np.ndarray  # (R,) positioners
-    n_way: np.ndarray  # (R,) waypoints per route
-    offsets: np.ndarray  # (R + 1,) where each route's waypoints start in ``way``
-    way: np.ndarray  # (W, 2) every route's waypoints, one route after the other
-    depart: np.ndarray  # (W,) departure steps (float; 0 for untimed routes)
-    timed: np.ndarray  # (R,) whether a route has departure steps
+    Attributes:
+        who: ``(R,)`` the positioners.
+        n_way: ``(R,)`` waypoints per route.
+        offsets: ``(R + 1,)`` where each route's waypoints start in ``way``.
+        way: ``(W, 2)`` every route's waypoints, one route after the other.
+        depart: ``(W,)`` the departure steps of the timed routes (float; 0 for the others).
+        timed: ``(R,)`` whether a route has departure steps.
+    """
+
+    who: np.ndarray
+    n_way: np.ndarray
+    offsets: np.ndarray
+    way: np.ndarray
+    depart: np.ndarray
+    timed: np.ndarray
 
 
 class RouteBook:
@@ -119,13 +129,23 @@ class RouteBook:
         return iter(self._routes)
 
     def __getitem__(self, who: int) -> Route:
+        """``who``'s route, to read: a route changes only through :meth:`follow`, :meth:`drop`
+        and :meth:`passed` (the packed arrays would not see another change)."""
         return self._routes[who]
 
     def follow(self, who: int, waypoints: np.ndarray, depart: np.ndarray | None = None) -> None:
-        """``who`` follows ``waypoints`` from the first one (replacing any route it had)."""
-        if depart is not None and len(depart) != len(waypoints):
-            raise ValueError(f"positioner {who}: a timed route needs one departure step per waypoint "
-                             f"({len(depart)} for {len(waypoints)} waypoints)")
+        """``who`` follows ``waypoints`` ``(M >= 1, 2)`` from the first one, leaving waypoint ``m``
+        no earlier than control step ``depart[m]`` if given (replacing any route it had).
+
+        Raises:
+            PlannerError: ``waypoints`` is not ``(M >= 1, 2)``, or ``depart`` has not ``M`` steps.
+        """
+        shape = np.shape(waypoints)
+        if len(shape) != 2 or shape[0] < 1 or shape[1] != 2:
+            raise PlannerError(f"positioner {who}: a route needs waypoints of shape (M >= 1, 2), got {shape}")
+        if depart is not None and len(depart) != shape[0]:
+            raise PlannerError(f"positioner {who}: a timed route needs one departure step per waypoint "
+                               f"({len(depart)} for {shape[0]} waypoints)")
         self._routes[who] = Route(waypoints, 0, depart)
         self._packed = None
 
@@ -134,27 +154,17 @@ class RouteBook:
         if self._routes.pop(who, None) is not None:
             self._packed = None
 
-    def heading(self, who: int) -> np.ndarray:
-        """The waypoint ``who`` heads for."""
-        route = self._routes[who]
-        return route.waypoints[route.pos]
-
-    def waits_for_departure(self, who: int, step: int) -> bool:
-        """A timed route whose next departure is later than ``step``."""
-        route = self._routes[who]
-        return route.depart is not None and route.pos + 1 < len(route.waypoints) and step < route.depart[route.pos + 1]
-
     # ------------------------------------------------------------------ every route at once
     def _pack(self) -> _Packed:
+        """The routes packed (:class:`_Packed`), built again after a route starts (not empty)."""
         if self._packed is None:
             routes = list(self._routes.values())
             n = len(routes)
             n_way = np.fromiter((len(r.waypoints) for r in routes), np.int64, n)
             offsets = np.zeros(n + 1, dtype=np.int64)
             np.cumsum(n_way, out=offsets[1:])
-            way = np.concatenate([np.asarray(r.waypoints, dtype=float).reshape(-1, 2) for r in routes]) if n else np.zeros((0, 2))
-            depart = (np.concatenate([np.zeros(len(r.waypoints)) if r.depart is None else np.asarray(r.depart, dtype=float)
-                                      for r in routes]) if n else np.zeros(0))
+            way = np.concatenate([np.asarray(r.waypoints, dtype=float) for r in routes])
+            depart = np.concatenate([np.zeros(len(r.waypoints)) if r.depart is None else np.asarray(r.depart, dtype=float) for r in routes])
             timed = np.fromiter((r.depart is not None for r in routes), bool, n)
             self._packed = _Packed(np.fromiter(self._routes, np.int64, n), n_way, offsets, way, depart, timed)
         return self._packed
@@ -167,7 +177,7 @@ class RouteBook:
 
     @staticmethod
     def _waits(pk: _Packed, pos: np.ndarray, step: int) -> np.ndarray:
-        """Whether each route waits for a later departure (:meth:`waits_for_departure`)."""
+        """Whether each route is a timed one whose next departure is later than ``step``."""
         at = pk.offsets[:-1] + pos
         has_next = pos + 1 < pk.n_way
         return pk.timed & has_next & (step < pk.depart[np.where(has_next, at + 1, at)])
