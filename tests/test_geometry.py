@@ -370,3 +370,26 @@ def test_capsule_segments_compiled_equal_the_verifiers_coordinates_bit_for_bit(n
         sx, sy, ex, ey = capsule_coordinates(inst, b, o, joints)
         np.testing.assert_array_equal(start, np.stack([sx, sy], axis=-1))
         np.testing.assert_array_equal(end, np.stack([ex, ey], axis=-1))
+
+
+@pytest.mark.parametrize("name", ["desi", "moons-capsules", "sdss", "moons"])
+def test_the_safety_layers_clearances_are_clearance_between_bit_for_bit(name):
+    # The safety layers' compiled rows (clearance_rows) against the verifier's clearance_between:
+    # neighbours at the pitch, every joint anywhere in its range (crossing, touching and parted arms).
+    from fiberplan.geometry import clearance_between, clearance_rows
+
+    inst = load_instrument(name)
+    rng = np.random.default_rng(5)
+    lim = inst.limits_rad
+    m = 4000
+    base_i = rng.uniform(-100, 100, (m, 2))
+    angle = rng.uniform(-np.pi, np.pi, m)
+    base_j = base_i + inst.pitch_mm * rng.uniform(0.5, 1.2, m)[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+    orient_i, orient_j = rng.uniform(-np.pi, np.pi, m), rng.uniform(-np.pi, np.pi, m)
+    qi, qj = rng.uniform(lim[:, 0], lim[:, 1], (m, 2)), rng.uniform(lim[:, 0], lim[:, 1], (m, 2))
+    qj[::5] = qi[::5]  # some pairs in the same configuration
+    got = clearance_rows(inst, base_i, orient_i, qi, base_j, orient_j, qj)
+    expected = clearance_between(inst, base_i, orient_i, qi, base_j, orient_j, qj)
+    assert got.shape == expected.shape and got.tobytes() == expected.tobytes()
+    assert (expected.min(axis=1) < 0).any() and (expected.min(axis=1) > 0).any()
+    assert clearance_rows(inst, base_i[:0], orient_i[:0], qi[:0], base_j[:0], orient_j[:0], qj[:0]).shape == (0, expected.shape[1])

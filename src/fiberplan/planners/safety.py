@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fiberplan.errors import PlannerError
-from fiberplan.geometry import clearance_between, motion_bound, pair_clearance, point_extents
+from fiberplan.geometry import clearance_rows, motion_bound, pair_clearance, point_extents
 from fiberplan.scenario import Scenario
 
 
@@ -84,7 +84,7 @@ class SafetyLayer:
     def _between(self, pairs: np.ndarray, qi: np.ndarray, qj: np.ndarray) -> np.ndarray:
         """Clearance of row-matched pairs with ``i`` at ``qi`` and ``j`` at ``qj``."""
         i, j = pairs[:, 0], pairs[:, 1]
-        return clearance_between(self.inst, self.base[i], self.orient[i], qi, self.base[j], self.orient[j], qj).min(axis=-1)
+        return clearance_rows(self.inst, self.base[i], self.orient[i], qi, self.base[j], self.orient[j], qj).min(axis=-1)
 
     def unsafe(self, pairs: np.ndarray, q: np.ndarray, q_next: np.ndarray, c0: np.ndarray, floor: np.ndarray) -> np.ndarray:
         """Which pairs are unsafe when moving from ``q`` to ``q_next`` (linear in joints).
@@ -276,7 +276,7 @@ def halve_steps(
         stats.iterations += 1
         qi = joints[ii] + scale[ii, None] * step[ii]
         qj = joints[jj] + scale[jj, None] * step[jj]
-        c1 = clearance_between(inst, base_i, orient_i, qi, base_j, orient_j, qj).min(axis=1)
+        c1 = clearance_rows(inst, base_i, orient_i, qi, base_j, orient_j, qj).min(axis=1)
         bound = scale[ii] * motion_full[ii] + scale[jj] * motion_full[jj]
         bad = (bound > 0) & ((c1 < f0) | (clearance_along(c0, c1, (1.0 + eta) * bound) < f0))
         if not np.any(bad):
