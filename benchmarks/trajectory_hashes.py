@@ -9,7 +9,7 @@ the SHA-256 of ``joints_rad`` (float64, C order) and of ``time_s``, with the run
     python benchmarks/trajectory_hashes.py --compare /tmp/before.json /tmp/after.json
 
 ``--compare`` exits 1 and names every run whose trajectory differs. ``--sets`` plans other sets,
-e.g. ``--sets moons-capsules:61:random:0-4,sdss:547:random:0-1``.
+e.g. ``--sets moons-capsules:61:random:0-4,sdss:547:random:0-1,sdss:7:hard:0-9`` (``hard``: the groups of the gap tables).
 """
 
 from __future__ import annotations
@@ -37,11 +37,13 @@ def fingerprints(planner: str, sets=SETS, quick: bool = False) -> dict[str, dict
     import numpy as np
 
     import fiberplan as fp
+    from fiberplan.studies.scenarios import hard_scenario
 
     out: dict[str, dict] = {}
     for instrument, n, kind, seeds in sets:
         for seed in list(seeds)[: 1 if quick else None]:
-            scenario = fp.make_scenario(instrument, n, kind, seed)
+            # hard: the clustered groups of the gap tables (fiberplan.studies.scenarios.hard_scenario)
+            scenario = hard_scenario(instrument, n, seed) if kind == "hard" else fp.make_scenario(instrument, n, kind, seed)
             t0 = time.perf_counter()
             result = fp.plan(scenario, planner)
             joints = np.ascontiguousarray(result.trajectory.joints, dtype=np.float64)
