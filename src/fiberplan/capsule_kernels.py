@@ -19,6 +19,9 @@ module shaping its inputs and outputs:
 - :func:`smallest_combo`: :func:`fiberplan.geometry.smallest_clearance`, the smallest clearance
   over an instrument's capsule combinations for configurations read by index from the start
   schedule's tables (:mod:`fiberplan.planners.mpc.schedule`), without numpy's gathered copies.
+- :func:`row_clearances`: :func:`fiberplan.geometry.clearance_rows`, the safety layers' pair
+  clearances row by row (capsule ends and distances in one loop; a safety layer checks a few
+  rows at a time, thousands of times a run on small groups).
 
 The arithmetic is numpy's, operation for operation and in the same order (the cheapest formula
 each combination's shapes allow: point to point, point to segment, segment to segment closest at
