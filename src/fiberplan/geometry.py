@@ -404,9 +404,9 @@ def clearance_rows(
     ab = a + joints[:, 1]
     base = np.concatenate([base_i, base_j])
     out = np.empty((len(joints_i), len(combos)))
-    capsule_kernels.row_clearances(np.cos(a), np.sin(a), np.cos(ab), np.sin(ab), np.ascontiguousarray(base[:, 0], dtype=np.float64),
-                                   np.ascontiguousarray(base[:, 1], dtype=np.float64), float(instrument.alpha_arm_mm), on_alpha,
-                                   start_mm, end_mm, combos[:, 0], combos[:, 1], combo_radii, out)
+    trig = [np.ascontiguousarray(x, dtype=np.float64) for x in (np.cos(a), np.sin(a), np.cos(ab), np.sin(ab))]  # as capsule_segments
+    capsule_kernels.row_clearances(*trig, np.ascontiguousarray(base[:, 0], dtype=np.float64), np.ascontiguousarray(base[:, 1], dtype=np.float64),
+                                   float(instrument.alpha_arm_mm), on_alpha, start_mm, end_mm, combos[:, 0], combos[:, 1], combo_radii, out)
     return out
 
 
