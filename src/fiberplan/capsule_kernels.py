@@ -20,8 +20,8 @@ module shaping its inputs and outputs:
   over an instrument's capsule combinations for configurations read by index from the start
   schedule's tables (:mod:`fiberplan.planners.mpc.schedule`), without numpy's gathered copies.
 - :func:`row_clearances`: :func:`fiberplan.geometry.clearance_rows`, the safety layers' pair
-  clearances row by row (capsule ends and distances in one loop; a safety layer checks a few
-  rows at a time, thousands of times a run on small groups).
+  clearances row by row from :func:`capsule_ends` (a safety layer checks a few rows at a time,
+  thousands of times a run on small groups).
 
 The arithmetic is numpy's, operation for operation and in the same order (the cheapest formula
 each combination's shapes allow: point to point, point to segment, segment to segment closest at
@@ -417,32 +417,17 @@ def capsule_ends(cos_a: np.ndarray, sin_a: np.ndarray, cos_ab: np.ndarray, sin_a
 
 
 @numba.njit(cache=True, error_model="numpy", nogil=True)
-def row_clearances(cos_a: np.ndarray, sin_a: np.ndarray, cos_ab: np.ndarray, sin_ab: np.ndarray, base_x: np.ndarray,
-                   base_y: np.ndarray, alpha_arm_mm: float, on_alpha: np.ndarray, start_mm: np.ndarray, end_mm: np.ndarray,
-                   combo_ca: np.ndarray, combo_cb: np.ndarray, combo_radii: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
-    """:func:`fiberplan.geometry.clearance_between` of capsules on their arms' axes, from the
-    joints' cosines and sines (numpy's): rows ``0..M-1`` are the ``i`` sides and ``M..2M-1`` the
-    ``j`` sides of ``out`` ``(M, K)``'s rows; each capsule's ends as :func:`capsule_ends` places
-    them, each combination's distance as :func:`segment_distances` measures it, less its radii."""
+def row_clearances(start: np.ndarray, end: np.ndarray, combo_ca: np.ndarray, combo_cb: np.ndarray, combo_radii: np.ndarray,
+                   out: np.ndarray) -> None:  # pragma: no cover
+    """:func:`fiberplan.geometry.clearance_between` from the capsule ends ``(2M, C, 2)`` that
+    :func:`capsule_ends` placed (rows ``0..M-1`` the ``i`` sides, ``M..2M-1`` the ``j`` sides):
+    each combination's distance as :func:`segment_distances` measures it, less its radii, into
+    ``out`` ``(M, K)``."""
     m_rows = out.shape[0]
-    n_caps = on_alpha.shape[0]
-    ends = np.empty((2, n_caps, 4))  # (side, capsule, start x / y, end x / y)
     for m in range(m_rows):
-        for side in range(2):
-            r = m + side * m_rows
-            elbow_x = base_x[r] + alpha_arm_mm * cos_a[r]
-            elbow_y = base_y[r] + alpha_arm_mm * sin_a[r]
-            for c in range(n_caps):
-                if on_alpha[c]:
-                    ox, oy, dx, dy = base_x[r], base_y[r], cos_a[r], sin_a[r]
-                else:
-                    ox, oy, dx, dy = elbow_x, elbow_y, cos_ab[r], sin_ab[r]
-                ends[side, c, 0] = ox + start_mm[c] * dx
-                ends[side, c, 1] = oy + start_mm[c] * dy
-                ends[side, c, 2] = ox + end_mm[c] * dx
-                ends[side, c, 3] = oy + end_mm[c] * dy
+        r = m + m_rows
         for k in range(combo_ca.shape[0]):
             a, b = combo_ca[k], combo_cb[k]
-            d = _segment_pair(ends[0, a, 0], ends[0, a, 1], ends[0, a, 2], ends[0, a, 3],
-                              ends[1, b, 0], ends[1, b, 1], ends[1, b, 2], ends[1, b, 3])[0]
+            d = _segment_pair(start[m, a, 0], start[m, a, 1], end[m, a, 0], end[m, a, 1],
+                              start[r, b, 0], start[r, b, 1], end[r, b, 0], end[r, b, 1])[0]
             out[m, k] = d - combo_radii[k]

@@ -392,21 +392,27 @@ def clearance_rows(
     orient_j: np.ndarray, joints_j: np.ndarray,
 ) -> np.ndarray:
     """:func:`clearance_between` for the planners' safety layers, ``(M, 2)`` joints row by row:
-    the same values bit for bit, in one compiled loop where the capsules lie on their arms' axes
-    (numpy's cosines and sines, then :func:`capsule_kernels.row_clearances`: a tenth of the time
-    on the few rows a safety layer checks at a step), else :func:`clearance_between` itself.
-    (The verifier keeps :func:`clearance_between`.)"""
-    if instrument.polygons or _lateral(instrument) is not None or len(joints_i) == 0:
+    the same values bit for bit, from :func:`capsule_segments`' compiled ends and one compiled loop
+    over the combinations (:func:`capsule_kernels.row_clearances`), without the broadcasting and
+    gathered copies around them: a safety layer checks a few rows at a step, thousands of steps
+    on small groups. Instruments with polygon zones go to :func:`clearance_between`. (The verifier
+    keeps :func:`clearance_between`.)"""
+    if instrument.polygons or len(joints_i) == 0:
         return clearance_between(instrument, base_i, orient_i, joints_i, base_j, orient_j, joints_j)
     on_alpha, start_mm, end_mm, combos, combo_radii = capsule_tables(instrument)
     joints = np.concatenate([joints_i, joints_j])
     a = joints[:, 0] + np.concatenate([orient_i, orient_j])
     ab = a + joints[:, 1]
     base = np.concatenate([base_i, base_j])
-    out = np.empty((len(joints_i), len(combos)))
     trig = [np.ascontiguousarray(x, dtype=np.float64) for x in (np.cos(a), np.sin(a), np.cos(ab), np.sin(ab))]  # as capsule_segments
-    capsule_kernels.row_clearances(*trig, np.ascontiguousarray(base[:, 0], dtype=np.float64), np.ascontiguousarray(base[:, 1], dtype=np.float64),
-                                   float(instrument.alpha_arm_mm), on_alpha, start_mm, end_mm, combos[:, 0], combos[:, 1], combo_radii, out)
+    lateral = _lateral(instrument)
+    start_y, end_y = lateral if lateral is not None else (start_mm, end_mm)
+    start = np.empty((len(joints), len(start_mm), 2))
+    end = np.empty_like(start)
+    capsule_kernels.capsule_ends(*trig, np.ascontiguousarray(base[:, 0], dtype=np.float64), np.ascontiguousarray(base[:, 1], dtype=np.float64),
+                                 float(instrument.alpha_arm_mm), on_alpha, start_mm, end_mm, lateral is not None, start_y, end_y, start, end)
+    out = np.empty((len(joints_i), len(combos)))
+    capsule_kernels.row_clearances(start, end, combos[:, 0], combos[:, 1], combo_radii, out)
     return out
 
 
