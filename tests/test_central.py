@@ -244,6 +244,32 @@ def test_a_failed_start_is_followed_by_the_next(crossing: Scenario) -> None:
     assert both["solve_s"] > 0 and both["iterations"] >= alone["iterations"]
 
 
+def test_the_cpu_time_limit_reaches_ipopt(crossing: Scenario) -> None:
+    """``max_cpu_s`` is IPOPT's ``max_cpu_time``: a solve out of CPU time is not converged, and
+    without the limit the same NLP converges."""
+    from fiberplan.planners.central.nlp import _activate, _make_problem, _solve_nlp
+    from fiberplan.planners.central.solve import _sequential_guess
+
+    for cpu_s, converged in ((1e-9, False), (None, True)):
+        settings = make_settings("central", crossing, {"warm_start": ["sequential"], "max_cpu_s": cpu_s})
+        problem = _make_problem(crossing, settings)
+        q, tau = _sequential_guess(problem)
+        active = np.argwhere(_activate(problem, q, settings.activation_window))
+        raw, _ = _solve_nlp(problem, active, [(q, tau)])
+        assert (raw["status"] == "Solve_Succeeded") is converged
+        if not converged:
+            assert raw["status"] == "Maximum_CpuTime_Exceeded"
+
+
+def test_moons_limits_each_solve_by_cpu_time() -> None:
+    """MOONS' preset limits each solve by CPU time (the same iterations on a loaded machine), with a
+    wall-time limit only as a net six times as long."""
+    from fiberplan.planners.central import CentralSettings
+
+    settings = CentralSettings.for_instrument(load_instrument("moons"))
+    assert settings.max_cpu_s == 300.0 and settings.max_wall_s == 1800.0
+
+
 def test_a_solution_short_of_lines_is_not_converged(crossing: Scenario) -> None:
     """A solve whose solution needs lines it did not have, with no lazy round left, is not
     converged (the lines are not added after the last solve and then counted as if solved with)."""

@@ -645,6 +645,8 @@ def _solve_nlp(
             "bound_relax_factor": 0.0,
         },
     }
+    if st.max_cpu_s is not None:
+        opts["ipopt"]["max_cpu_time"] = st.max_cpu_s
     # The derivatives IPOPT needs, assembled by :func:`_expressions`; only those.
     opts |= ex.functions | {"no_nlp_grad": True, "calc_lam_p": False}
     nlp = {"x": ex.z, "f": ex.objective, "g": ex.g}

@@ -60,6 +60,9 @@ class CentralSettings:
     max_iter: int = setting(1500, "IPOPT iteration limit per solve", low=2, high=1_000_000, group="solver")
     tol: float = setting(1e-7, "IPOPT convergence tolerance", low=0.0, high=1.0, low_open=True, group="solver")
     max_wall_s: float = setting(120.0, "IPOPT wall-time limit per solve", unit="s", low=0.0, high=1e6, low_open=True, group="solver")
+    max_cpu_s: float | None = setting(None, "IPOPT CPU-time limit per solve (this process's CPU time: on a loaded machine the same "
+                                      "iterations, where the wall-time limit gives fewer; null: none)", unit="s", low=0.0, high=1e6,
+                                      low_open=True, optional=True, group="solver", kind="float")
     max_makespan_factor: float = setting(8.0, "upper bound of t_f in lower bounds", low=1.0, high=1000.0, group="problem")
     output_dt_s: float = setting(0.01, "the knots are merged with a uniform grid of this spacing in the output", unit="s", low=1e-4,
                                  high=10.0, group="output")
