@@ -160,19 +160,32 @@ def _execute(
     q = scenario.start.copy()
     c_now = safety.clearance(q, scenario.pairs)
     history, held_total = [q.copy()], 0
+    # From this step on no start delay or departure step lies ahead: a step is then a function of
+    # the configuration and the route positions alone.
+    timeless = max([int(schedule.delay_steps.max(initial=0))] + [int(np.max(d, initial=0)) for _, d in schedule.timed.values()])
     for step in range(max_steps):
         if np.all((q == goal).all(axis=1) | unplaced):
             break
         q_next = q + np.clip(goal - q, -step_rad, step_rad)
+        passed = False
         for i, (waypoints, departs) in routes.items():
             path = route_path(q[i], waypoints, pos[i], step_rad, 1, departs, step)
             q_next[i] = path[0]
             while pos[i] < len(waypoints) - 1 and np.all(np.abs(q_next[i] - waypoints[pos[i]]) <= 0.5 * step_rad):
                 pos[i] += 1
+                passed = True
         waiting = step < schedule.delay_steps
         q_next[waiting | unplaced | scenario.locked] = q[waiting | unplaced | scenario.locked]
         q_next, held, _ = safety.apply(q, q_next, c_now, first)
         held_total += int(held.sum())
+        if step >= timeless and not passed and np.array_equal(q_next, q):
+            # Held where it stood, with nothing timed ahead: every later step is this one again
+            # (the same configuration, route positions and clearances in, the same held out), so
+            # the rest of the run is this configuration, held alike, without computing it.
+            rest = max_steps - step - 1
+            history.extend([q.copy()] * (rest + 1))
+            held_total += rest * int(held.sum())
+            break
         safety.refresh(c_now, q, q_next)
         q = q_next
         history.append(q.copy())
