@@ -41,6 +41,7 @@ class _Options:
     rest_steps: int = 0  # steps a joint holds still before turning back where runs meet (the instrument's speed ramp; governed planners)
     tails: bool = True  # route_tails
     prioritized_up_to: int = 0  # route_prioritized_up_to
+    retract_up_to: int = 0  # route_retract_up_to
 
     @property
     def solo(self) -> tuple[float, float]:
@@ -411,14 +412,31 @@ retraction: the datum's beta at the target's alpha alone gave 1.16-1.70 x the bo
 1.00-1.64 x; seed 8 1.273 -> 1.001, seed 29 1.225 -> 1.031)."""
 
 
-def _through_retraction(scenario: Scenario, opts: _Options, home: np.ndarray, short: np.ndarray) -> list[_Piece] | None:
+def _scheduled_leg(opts: _Options) -> Callable[[Scenario], np.ndarray | None]:
+    """A leg planned by the ``prioritized`` planner's schedule (:func:`_scheduled`): its joints if it brings everyone home, else ``None``."""
+    def plan(leg: Scenario) -> np.ndarray | None:
+        found = _scheduled(leg, opts)
+        return None if found is None or (leg.has_target & ~found[1]).any() else found[0]
+    return plan
+
+
+def _through_retraction(scenario: Scenario, opts: _Options, home: np.ndarray, short: np.ndarray,
+                        plan: Callable[[Scenario], np.ndarray | None] | None = None, names: tuple[str, str, str] = (
+                            "prioritized-retract", "prioritized-retract-reversed", "prioritized"),
+                        shorter_than: int | None = None) -> list[_Piece] | None:
     """The ``prioritized through a retraction`` candidate of :func:`_prioritized`: of the
     retracted configurations :data:`RETRACTIONS`, the shortest whole; ``None`` if none is clear or
     every one has a leg that leaves anyone short. They are tried in the order of their bounds (each
     positioner's full-speed time to the retracted configuration and on to its target); once the
     best plan found is no longer than the next bound, the rest cannot beat it and are not planned
-    (the same result as planning all nine, for less: on MOONS' zones each leg costs seconds)."""
+    (the same result as planning all nine, for less: on MOONS' zones each leg costs seconds).
+
+    ``plan`` plans each leg (its joints if complete, else ``None``; default: the ``prioritized``
+    planner's schedule, :func:`_scheduled_leg`); ``names``: the two legs' kinds and the piece's
+    first word (:func:`_direct_retraction` plans the legs with the run's planner); with
+    ``shorter_than`` (samples), retractions whose bound is not shorter are not planned."""
     t0 = time.perf_counter()
+    plan = _scheduled_leg(opts) if plan is None else plan
     beta = _datum(scenario)[:, 1]
     alphas = {"target": scenario.target[:, 0], "start": scenario.start[:, 0],
               "half-way": 0.5 * (scenario.start[:, 0] + scenario.target[:, 0])}
@@ -435,30 +453,78 @@ def _through_retraction(scenario: Scenario, opts: _Options, home: np.ndarray, sh
     for bound_s, k, fraction, where, mid in sorted(tried, key=lambda t: (t[0], t[1])):  # the most promising first
         if best is not None and bound_s > (len(best[0]) - 1) * opts.dt_s + 1e-9:
             break  # this one and the rest cannot be shorter
+        if shorter_than is not None and bound_s > (shorter_than - 1) * opts.dt_s + 1e-9:
+            break
         if len(scenario.pairs) and float(np.min(min_pair_clearance(scenario.instrument, scenario.base_xy, scenario.orient, mid,
                                                                    scenario.pairs))) <= opts.floor_mm:
             continue
-        first = leg_scenario(scenario, scenario.start, mid, "prioritized-retract")
-        back = leg_scenario(scenario, home, mid, "prioritized-retract-reversed")
+        first = leg_scenario(scenario, scenario.start, mid, names[0])
+        back = leg_scenario(scenario, home, mid, names[1])
         # The second leg first: only the retracting ones move in it, and where one of them cannot
         # retract among the others on their targets (the usual failure), the first is not planned.
-        two = _scheduled(back, opts)
-        if two is None or (back.has_target & ~two[1]).any():
+        two = plan(back)
+        if two is None:
             continue
-        one = _scheduled(first, opts)
-        if one is None or (first.has_target & ~one[1]).any():
+        one = plan(first)
+        if one is None:
             continue
-        j1 = exactly_at(one[0], first.target, mid)
-        j2 = exactly_at(two[0], back.target, mid)[::-1]
-        joints, shift = (overlap_legs(scenario, j1, j2, opts.floor_mm, opts.coarse_steps) if opts.overlap
+        j1 = exactly_at(one, first.target, mid)
+        j2 = exactly_at(two, back.target, mid)[::-1]
+        joints, shift = (overlap_legs(scenario, j1, j2, opts.floor_mm, opts.coarse_steps, rest=opts.rest_steps) if opts.overlap
                          else (np.concatenate([j1, j2[1:]]), 0))
         if best is None or (len(joints), k) < (len(best[0]), best[3]):  # (on a tie, the first of RETRACTIONS)
             best = (joints, shift, f"beta {fraction:g} of the way to the datum's, alpha at the {where}'s", k)
     if best is None:
         return None
     joints, shift, how, _ = best
-    return [_Piece(f"prioritized through a retraction of {int(short.sum())} ({how}), overlapped by {shift} steps", joints,
+    return [_Piece(f"{names[2]} through a retraction of {int(short.sum())} ({how}), overlapped by {shift} steps", joints,
                    np.flatnonzero(scenario.has_target).tolist(), 2, time.perf_counter() - t0, overlap_steps=shift)]
+
+
+RETRACT_LATE = (1.5, 1.2)
+""":func:`_direct_retraction` retracts the positioners the direct plan leaves short, then also
+those it brings home later than these many lower bounds of the move (each a larger set, tried
+in turn). SDSS 19 hard seeds 0-14 (session 37): the short ones alone were best on seed 3 (13.46
+s, the datum's 20.78), the late ones too on seeds 12 and 14 (13.86 / 12.64 s, the layer's best
+before 15.46 / 14.46 s)."""
+
+
+def _direct_retraction(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, direct: _Piece,
+                       shorter_than: int | None = None) -> list[_Piece] | None:
+    """The ``direct through a retraction`` candidate: the positioners the direct plan leaves short
+    or brings home late (:data:`RETRACT_LATE`) retract (:data:`RETRACTIONS`: beta part or all the
+    way to the datum's, alpha at the target's, the start's or half-way), everyone else goes
+    straight to its target, in two legs of the run's planner: ``start -> that``, then ``(targets
+    -> that)`` reversed, overlapped where clear (:func:`_through_retraction`). The issue's hybrid
+    for small dense groups: direct moves for those the direct plan brings home in time, a partial
+    retract for the others only, not the whole group through the datum; the sets tried: the
+    short ones, with the late ones, and the short ones with their neighbours. The shortest whole
+    kept; only retractions whose bound is below ``shorter_than`` samples (the best plan at hand) are
+    planned; ``None`` if none gives two complete legs."""
+    traj = Trajectory(np.arange(len(direct.joints)) * opts.dt_s, direct.joints)
+    reached = reached_mask(scenario, traj)
+    arrive = arrival_times(scenario, traj)
+    bound_s = lower_bound_s(scenario)
+    movable = scenario.has_target & ~scenario.locked
+    candidates = [movable & (~reached | (arrive > late * bound_s)) for late in (np.inf, *RETRACT_LATE)]
+    candidates.append(_with_neighbours(scenario, candidates[0]) & movable)  # the short ones' neighbours too
+    sets: list[np.ndarray] = []
+    for retract in candidates:
+        if retract.any() and not any(np.array_equal(retract, r) for r in sets):
+            sets.append(retract)
+
+    def plan(leg: Scenario) -> np.ndarray | None:
+        done = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails)
+        return done.joints if done.complete else None
+
+    best: list[_Piece] | None = None
+    home = _home(scenario)
+    for retract in sets:
+        bar = shorter_than if best is None else min(len(best[0].joints), shorter_than or len(best[0].joints))
+        found = _through_retraction(scenario, opts, home, retract, plan, ("retract", UNFOLD_REVERSED_LEG, "direct"), shorter_than=bar)
+        if found is not None and (best is None or len(found[0].joints) < len(best[0].joints)):
+            best = found
+    return best
 
 
 # ---------------------------------------------------------------------------- the layer
@@ -483,7 +549,7 @@ def _options(settings: Any, scenario: Scenario) -> _Options:
     rest = 0 if ramp is None or not getattr(settings, "motor_limits", False) else math.ceil(ramp / settings.dt_s - 1e-9)
     return _Options(settings.route_attempts, settings.dt_s if settings.route_restarts else None, settings.route_overlap,
                     float(getattr(settings, "safety_margin_mm", 0.0)), step, settings.dt_s, rest, settings.route_tails,
-                    int(getattr(settings, "route_prioritized_up_to", 0)))
+                    int(getattr(settings, "route_prioritized_up_to", 0)), int(getattr(settings, "route_retract_up_to", 0)))
 
 
 def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Options,
@@ -505,8 +571,16 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
         return "fold"
     elif scenario.instrument.reach_max_mm > DENSE_REACH * scenario.instrument.pitch_mm:
         # Dense: the direct plan leaves positioners short on every seed measured, and a fix-up
-        # after it was slower than the two-leg plan on every one: the two legs alone.
-        consider("via_datum", _via_datum(scenario, plan_leg, opts))
+        # after it was slower than the two-leg plan on every one: the two legs, and in small
+        # groups the direct plan with a partial retraction of those it leaves short or late.
+        found = [consider("via_datum", _via_datum(scenario, plan_leg, opts))]
+        if scenario.n_positioners <= opts.retract_up_to:
+            direct = _direct(scenario, plan_leg, opts)
+            found.append(consider("direct", direct))
+            # Only a retraction that can beat the best complete plan so far is planned.
+            best = min((e["makespan_s"] for e in found if e.get("short", 1) == 0), default=None)
+            shorter_than = None if best is None else round(best / opts.dt_s) + 1
+            consider("direct through a retraction", _direct_retraction(scenario, plan_leg, opts, direct[0], shorter_than))
         return "dense"
     else:
         direct = _direct(scenario, plan_leg, opts)
