@@ -24,8 +24,8 @@ SIZES = {"central": 2}
 FAST = {"central": {"steps": 16, "warm_start": ["straight"], "lazy_rounds": 1, "max_wall_s": 20.0}}
 
 
-OWN_ROUTES = {("dnf", "moons"): {"route_prioritized_up_to": 0}}
-"""Runs whose prioritized candidates (the coordination layer's, on small groups) cost minutes on
+OWN_ROUTES = {("dnf", "moons"): {"route_prioritized_up_to": 0, "route_retract_up_to": 0}}
+"""Runs whose prioritized and retraction candidates (the coordination layer's, on small groups) cost minutes on
 MOONS' own zones (dnf, MOONS 7 random seed 4: 148 s for the two plans of this test, every
 candidate short or longer); the candidates have their own tests."""
 

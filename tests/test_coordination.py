@@ -16,9 +16,9 @@ from fiberplan.planners.coordination.settings import REVERSE_LEG
 from fiberplan.planners.mpc import plan_mpc
 from fiberplan.scenario import scenario_from_dict
 
-OWN_ROUTES = {"route_prioritized_up_to": 0}
+OWN_ROUTES = {"route_prioritized_up_to": 0, "route_retract_up_to": 0}
 """The planner's own routes only: tests of the layer's other rules, on groups small enough for the
-prioritized schedule to be a candidate too."""
+prioritized schedule and the direct plan's partial retraction to be candidates too."""
 
 
 def _check(scenario, result):
@@ -601,15 +601,15 @@ def test_small_groups_whose_moves_cross_take_the_prioritized_schedule_where_it_i
     assert summary["makespan_over_bound"] <= 1.01 and "faster joint late" in auto.stats["legs"][0]["leg"]
     with monkeypatch.context() as m:
         m.setattr(layer, "PRIORITIZED_SHAPES", layer.PRIORITIZED_SHAPES[:1])  # reference 003's schedule alone
-        plain = fp.plan(sc, "mpc")
+        plain = fp.plan(sc, "mpc", {"route_retract_up_to": 0})
     assert plain.stats["chosen"] == "prioritized" and fp.summarize(plain)["makespan_over_bound"] >= 1.1
-    own = fp.plan(sc, "mpc", {"route_prioritized_up_to": 0})
+    own = fp.plan(sc, "mpc", OWN_ROUTES)
     assert "prioritized" not in {c["strategy"] for c in own.stats["candidates"]}
     assert summary["makespan_s"] < 0.8 * fp.summarize(own)["makespan_s"]
     # Planned on the run's own time grid.
     np.testing.assert_allclose(np.diff(auto.trajectory.times), auto.settings["dt_s"])
     # Above the limit, not tried.
-    limited = fp.plan(sc, "mpc", {"route_prioritized_up_to": 6})
+    limited = fp.plan(sc, "mpc", {"route_prioritized_up_to": 6, "route_retract_up_to": 0})
     np.testing.assert_array_equal(limited.trajectory.joints, own.trajectory.joints)
 
 
@@ -661,6 +661,37 @@ def test_where_retracting_the_short_ones_is_not_enough_their_neighbours_retract_
     traj = layer._join(sc, [retraction], settings.dt_s)
     assert fp.verify(sc, traj).ok
     np.testing.assert_allclose(traj.joints[-1], sc.target, rtol=0.0, atol=1e-12)
+
+
+def test_a_small_dense_group_retracts_only_those_the_direct_plan_leaves_short_or_late():
+    # SDSS 7 hard seed 1: the direct plan brings everyone home, the last ones late (33.2 s); the
+    # late ones retract while the others go straight: 11.48 s, shorter than the prioritized
+    # schedule's retraction (13.96 s) and the two legs through the datum (16.98 s).
+    from fiberplan.planners.coordination import layer
+    from fiberplan.studies import hard_scenario
+
+    sc = hard_scenario("sdss", 7, 1)
+    auto = fp.plan(sc, "mpc")
+    summary = _check(sc, auto)
+    assert auto.stats["chosen"] == "direct through a retraction" and summary["reached"] == 7
+    others = {c["strategy"]: c["makespan_s"] for c in auto.stats["candidates"] if c["strategy"] != auto.stats["chosen"]}
+    assert {"via_datum", "direct"} <= set(others) and summary["makespan_s"] < min(others.values())
+    (leg,) = auto.stats["legs"]
+    assert leg["leg"].startswith("direct through a retraction of ")
+    retracted = int(leg["leg"].split("retraction of ")[1].split()[0])
+    assert 0 < retracted < 7  # a partial retraction: some go straight
+    # Off: not a candidate.
+    off = fp.plan(sc, "mpc", {"route_retract_up_to": 6})
+    assert "direct through a retraction" not in {c["strategy"] for c in off.stats["candidates"]}
+    # The candidate alone is no longer than the best plan it was asked to beat.
+    settings = fp.make_settings("mpc", sc, {})
+    opts = layer._options(settings, sc)
+
+    def plan_leg(leg, time_limit_s=None, use_fallback=False, progress=None):
+        return fp.plan(leg, "mpc", {"route": "direct", "time_limit_s": time_limit_s})
+
+    direct = layer._direct(sc, plan_leg, opts)[0]
+    assert layer._direct_retraction(sc, plan_leg, opts, direct, shorter_than=10) is None  # nothing under 0.18 s
 
 
 def test_no_prioritized_candidate_where_the_run_keeps_speed_ramps_between_its_runs():

@@ -20,9 +20,9 @@ from fiberplan.profile_io import read_paths, write_profiles
 from fiberplan.profiles import _allowed_speeds, _fit_joint, discretise_trajectory, rebuild
 from fiberplan.trajectory import Trajectory
 
-MPC_OWN = {"motor_limits": False, "route_prioritized_up_to": 0}
+MPC_OWN = {"motor_limits": False, "route_prioritized_up_to": 0, "route_retract_up_to": 0}
 """The mpc without its motor governor, on its own routes (not the prioritized schedule the layer
-tries on groups this small): stop-and-go samples that break the motor limits, for the
+tries on groups this small, nor its partial retractions): stop-and-go samples that break the motor limits, for the
 discretiser to mend."""
 
 
