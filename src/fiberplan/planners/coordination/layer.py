@@ -527,6 +527,24 @@ def _direct_retraction(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, di
     return best
 
 
+def _retraction_candidates(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, consider: Callable[[str, list[_Piece] | None],
+                           dict[str, Any]], scored: Callable[[], list[tuple[int, float]]]) -> None:
+    """The candidates ``direct`` and ``direct through a retraction`` (:func:`_direct_retraction`)
+    of a small dense group, unless a complete plan at hand (``scored``: ``(short, makespan)`` of
+    each) is at the lower bound; only retractions that can beat the best complete one are planned."""
+    def best() -> float | None:
+        return min((makespan for short, makespan in scored() if short == 0), default=None)
+
+    at_hand = best()
+    if at_hand is not None and _at_bound(at_hand, lower_bound_s(scenario), opts.dt_s):
+        return
+    direct = _direct(scenario, plan_leg, opts)
+    consider("direct", direct)
+    at_hand = best()
+    shorter_than = None if at_hand is None else round(at_hand / opts.dt_s) + 1
+    consider("direct through a retraction", _direct_retraction(scenario, plan_leg, opts, direct[0], shorter_than))
+
+
 # ---------------------------------------------------------------------------- the layer
 def _is_at_datum(scenario: Scenario, joints: np.ndarray) -> bool:
     free = ~scenario.locked
@@ -571,16 +589,10 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
         return "fold"
     elif scenario.instrument.reach_max_mm > DENSE_REACH * scenario.instrument.pitch_mm:
         # Dense: the direct plan leaves positioners short on every seed measured, and a fix-up
-        # after it was slower than the two-leg plan on every one: the two legs, and in small
-        # groups the direct plan with a partial retraction of those it leaves short or late.
-        found = [consider("via_datum", _via_datum(scenario, plan_leg, opts))]
-        if scenario.n_positioners <= opts.retract_up_to:
-            direct = _direct(scenario, plan_leg, opts)
-            found.append(consider("direct", direct))
-            # Only a retraction that can beat the best complete plan so far is planned.
-            best = min((e["makespan_s"] for e in found if e.get("short", 1) == 0), default=None)
-            shorter_than = None if best is None else round(best / opts.dt_s) + 1
-            consider("direct through a retraction", _direct_retraction(scenario, plan_leg, opts, direct[0], shorter_than))
+        # after it was slower than the two-leg plan on every one: the two legs (and in small
+        # groups, after the prioritized schedule's candidates, the direct plan with a partial
+        # retraction: coordinate).
+        consider("via_datum", _via_datum(scenario, plan_leg, opts))
         return "dense"
     else:
         direct = _direct(scenario, plan_leg, opts)
@@ -669,6 +681,8 @@ def coordinate(
         # (Not where the run keeps speed ramps between its runs: the schedule's moves start and stop at full speed.)
         for name, pieces in _prioritized(scenario, opts).items():
             consider(name, pieces)
+    if route == "auto" and structure == "dense" and scenario.n_positioners <= opts.retract_up_to and not _WHOLE_FALLBACK.get():
+        _retraction_candidates(scenario, recorded, opts, consider, lambda: [scores[name] for name in candidates])
 
     def short() -> bool:
         return not candidates or min(scores[name][0] for name in candidates) > 0
