@@ -520,8 +520,9 @@ def _direct_retraction(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, di
     best: list[_Piece] | None = None
     home = _home(scenario)
     for retract in sets:
-        bar = shorter_than if best is None else min(len(best[0].joints), shorter_than or len(best[0].joints))
-        found = _through_retraction(scenario, opts, home, retract, plan, ("retract", UNFOLD_REVERSED_LEG, "direct"), shorter_than=bar)
+        bars = [n for n in (shorter_than, None if best is None else len(best[0].joints)) if n is not None]
+        found = _through_retraction(scenario, opts, home, retract, plan, ("retract", UNFOLD_REVERSED_LEG, "direct"),
+                                    shorter_than=min(bars, default=None))
         if found is not None and (best is None or len(found[0].joints) < len(best[0].joints)):
             best = found
     return best
