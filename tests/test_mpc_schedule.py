@@ -387,3 +387,83 @@ def test_late_joint_moves_keep_their_margins_take_the_straight_time_and_end_soon
     _, worst, floor = _placed_pairs_worst_and_floor(sc, settings, step_rad, schedule, horizon, schedule.corner)
     assert np.all(worst >= floor - 1e-9)
     assert np.allclose(_delayed_moves(sc, step_rad, schedule.delay_steps, horizon, schedule.corner), sc.target)
+
+
+def test_pair_space_time_path_lets_one_step_aside_while_the_other_passes():
+    # Two positioners on one corridor of 5 cells, in each other's way (they keep 2 cells apart),
+    # going to each other's ends; the second has one side cell beside the corridor's middle.
+    # Neither can pass the other standing still, together one waits in the side cell.
+    from fiberplan.planners.mpc.schedule import pair_space_time_path
+
+    n_layers = 12
+    free_i = np.ones((n_layers + 1, 1, 5), dtype=bool)
+    free_j = np.zeros((n_layers + 1, 2, 5), dtype=bool)
+    free_j[:, 0, :] = True
+    free_j[:, 1, 2] = True
+    together = np.ones((1, 5, 2, 5), dtype=bool)
+    for x in range(5):
+        for y in range(5):
+            together[0, x, 0, y] = abs(x - y) >= 2
+    start, goal = (0, 0, 0, 4), (0, 4, 0, 0)
+    states = pair_space_time_path(free_i, free_j, together, start, goal)
+    assert states is not None
+    assert tuple(states[0]) == start and tuple(states[-1]) == goal
+    assert np.all(np.abs(np.diff(states, axis=0)) <= 1)  # each one a neighbouring cell per layer at most
+    assert all(free_i[k][tuple(s[:2])] and free_j[k][tuple(s[2:])] and together[tuple(s)] for k, s in enumerate(states))
+    assert any(tuple(s[2:]) == (1, 2) for s in states)  # the second waits aside
+    # The earliest: a breadth-first search over the pairs of cells agrees.
+    reach = {start}
+    for layer in range(1, n_layers + 1):
+        reach = {(a + da, b + db, c + dc, d + dd) for a, b, c, d in reach
+                 for da in (-1, 0, 1) for db in (-1, 0, 1) for dc in (-1, 0, 1) for dd in (-1, 0, 1)
+                 if a + da == 0 and 0 <= b + db < 5 and 0 <= c + dc < 2 and 0 <= d + dd < 5
+                 and free_j[layer, c + dc, d + dd] and together[0, b + db, c + dc, d + dd]}
+        if goal in reach:
+            break
+    assert len(states) - 1 == layer
+    # Without the side cell there is no way.
+    walled = free_j.copy()
+    walled[:, 1, 2] = False
+    assert pair_space_time_path(free_i, walled, together, start, goal) is None
+
+
+def test_pairs_place_a_positioner_whose_neighbour_is_in_its_way_wherever_it_stands():
+    # MOONS 61 unfold seed 0 (moons-capsules), its fold from the targets: after the delays, the
+    # timed paths and the repair, positioners 4 and 13 are unplaced (each crosses a neighbour
+    # that blocks its way both at that one's start and at its datum); searched together with a
+    # placed neighbour, both get timed paths, and every pair of placed positioners keeps its floor.
+    from fiberplan.planners.coordination.legs import leg_scenario
+    from fiberplan.studies.scenarios import study_scenario
+
+    sc = study_scenario("moons-capsules", 61, "unfold", 0)
+    datum = np.broadcast_to(np.array(sc.instrument.datum_rad), sc.start.shape)
+    leg = leg_scenario(sc, sc.target, datum, "fold")
+    settings = make_settings("mpc", leg)
+    step_rad = leg.instrument.speeds_rad_s * settings.dt_s
+    k = settings.schedule_cell_steps
+    kw = {"l_paths": settings.schedule_l_paths, "space_time": True, "cell_steps": k, "repair": True}
+    args = (leg, step_rad, settings.margin_mm, settings.schedule_delay_steps, settings.schedule_slack)
+    before = start_schedule(*args, **kw)
+    schedule = start_schedule(*args, **kw, pair_paths=True)
+    assert set(before.unplaced.tolist()) == {4, 13} and len(schedule.unplaced) == 0
+    for i in (4, 13):
+        assert i in schedule.timed
+        partners = [j for j in leg.pairs[(leg.pairs == i).any(axis=1)].ravel() if j != i and j in schedule.timed and j not in before.timed]
+        assert partners  # a neighbour was searched with it
+    move = np.ceil(np.max(np.abs(leg.target - leg.start) / step_rad, axis=1) - 1e-9)
+    horizon = int(np.ceil(settings.schedule_slack * move.max()))
+    off_grid = {}
+    for i, (waypoints, depart) in schedule.timed.items():
+        assert np.array_equal(waypoints[-1], leg.target[i]) and schedule.delay_steps[i] == depart[0]
+        last = np.ceil(np.max(np.abs(waypoints[-1] - (waypoints[-2] if len(waypoints) > 1 else leg.start[i])) / step_rad) - 1e-9)
+        off_grid[i] = (depart[-1], depart[-1] + last)
+        assert depart[-1] + last <= horizon + k // 2 + 1
+    floor = _floor(leg, settings, leg.pairs)
+    checked = 0
+    for t in range(0, horizon + 1, k):
+        q = _delayed_moves(leg, step_rad, schedule.delay_steps, t, schedule.corner, schedule.timed)
+        c = _pair_clearance(leg, leg.pairs, q, q)
+        on_grid = np.array([all(not (off_grid[i][0] < t < off_grid[i][1]) for i in pair if i in off_grid) for pair in leg.pairs])
+        assert np.all(c[on_grid] >= floor[on_grid] - 1e-9), t
+        checked += int(on_grid.sum())
+    assert checked > 5 * len(leg.pairs)

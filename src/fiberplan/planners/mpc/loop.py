@@ -111,7 +111,8 @@ def plan_mpc(scenario: Scenario, settings: MpcSettings, progress: ProgressCallba
         progress(0.0, "start schedule")
     schedule = start_schedule(scenario, step_rad, settings.margin_mm, settings.schedule_delay_steps, settings.schedule_slack,
                               l_paths=settings.schedule_l_paths, space_time=settings.schedule_space_time,
-                              cell_steps=settings.schedule_cell_steps, repair=settings.schedule_repair) if settings.start_schedule else None
+                              cell_steps=settings.schedule_cell_steps, repair=settings.schedule_repair,
+                              pair_paths=settings.schedule_pairs) if settings.start_schedule else None
     schedule_wall_s = time.perf_counter() - schedule_t0
     start_step = schedule.delay_steps if schedule is not None else np.zeros(n, dtype=np.int64)
 

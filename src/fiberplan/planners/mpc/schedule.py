@@ -20,7 +20,9 @@ timed path over their joint grid x time around everyone as scheduled (:func:`spa
 which the planner follows as a route leaving each waypoint no earlier than its departure step.
 With ``repair``, each positioner still unplaced then goes first: a placed neighbour leaves the
 schedule, the positioner searches its timed path around the others, and the neighbour is placed
-again after it (a delay, an L-shaped move or a timed path), or both are restored.
+again after it (a delay, an L-shaped move or a timed path), or both are restored. With
+``pair_paths``, each one still unplaced then searches timed paths together with a placed
+neighbour, over the pairs of their grid cells x time (:func:`pair_space_time_path`).
 
 The schedule only sets when each positioner's reference starts: collision avoidance stays
 with the QPs and the safety layer. Clearances are checked every ``stride`` steps. See
@@ -105,6 +107,71 @@ def timed_waypoints(cells: np.ndarray, coords: np.ndarray, cell_steps: int) -> t
             depart.append(k * cell_steps)
         k = e + 1
     return np.array(points).reshape(-1, 2), np.array(depart, dtype=np.int64)
+
+
+def _dilate_pairs(front: np.ndarray) -> np.ndarray:
+    """States ``(A, B, A', B')`` one layer on: each of the two positioners moves to one of its 8
+    neighbouring cells or stays, independently."""
+    out = front.copy()
+    for axes in ((0, 1), (2, 3)):
+        before = out.copy()
+        for da, db in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
+            dst, src = [slice(None)] * 4, [slice(None)] * 4
+            for axis, d in zip(axes, (da, db), strict=True):
+                if d > 0:
+                    dst[axis], src[axis] = slice(d, None), slice(None, -d)
+                elif d < 0:
+                    dst[axis], src[axis] = slice(None, d), slice(-d, None)
+            out[tuple(dst)] |= before[tuple(src)]
+    return out
+
+
+def pair_space_time_path(free_i: np.ndarray, free_j: np.ndarray, together: np.ndarray, start: tuple[int, int, int, int],
+                         goal: tuple[int, int, int, int]) -> np.ndarray | None:
+    """Earliest joint path of two positioners through their grids over time layers, each staying
+    at its goal once the two are there (:func:`space_time_path` for a pair).
+
+    Args:
+        free_i, free_j: ``(L + 1, A, B)`` and ``(L + 1, A', B')``: whether each of the two may
+            occupy each of its cells at each layer (against everyone else as scheduled).
+        together: ``(A, B, A', B')`` whether the two keep their pair's floor in those cells.
+        start, goal: the two cells of each, ``(a, b, a', b')``.
+
+    Returns:
+        The states ``(l* + 1, 4)`` at layers ``0..l*``, ``l*`` the earliest layer from which
+        both goals can be held; ``None`` if there is none. Backward from the goal, each layer's
+        state is the reachable one nearest the start (Chebyshev), as in the single search.
+    """
+    layers = free_i.shape[0]
+    hold_i = np.flip(np.logical_and.accumulate(np.flip(free_i[:, goal[0], goal[1]])))  # goal free from layer l on
+    hold_j = np.flip(np.logical_and.accumulate(np.flip(free_j[:, goal[2], goal[3]])))
+    front = np.zeros(together.shape, dtype=bool)
+    front[start] = True
+    fronts = [front]
+    end = None
+    for layer in range(1, layers):
+        front = _dilate_pairs(front) & free_i[layer][:, :, None, None] & free_j[layer][None, None] & together
+        fronts.append(front)
+        if front[goal] and hold_i[layer] and hold_j[layer]:
+            end = layer
+            break
+        if not front.any():
+            return None
+    if end is None:
+        return None
+    shape = np.array(together.shape)
+    at = np.array(goal)
+    begin = np.array(start)
+    states = [at]
+    moves = np.array(list(np.ndindex(3, 3, 3, 3))) - 1
+    for layer in range(end - 1, -1, -1):
+        before = at + moves
+        inside = np.all((before >= 0) & (before < shape), axis=1)
+        before = before[inside]
+        ok = before[fronts[layer][tuple(before.T)]]
+        at = ok[np.argmin(np.abs(ok - begin).max(axis=1))]  # (the first of the nearest)
+        states.append(at)
+    return np.array(states[::-1])
 
 
 @dataclass
@@ -204,6 +271,8 @@ class StartScheduler:
             starting late (:meth:`_late_corner`: the same duration, another sweep) and keeps the
             one that ends first.
         late: ``(N,)`` positioners whose move starts with that shape (before anyone is placed).
+        pair_paths: with ``space_time``, a positioner still unplaced after the repair searches
+            timed paths together with a placed neighbour (:meth:`_repair_pair`).
 
     The state is explicit: per positioner its ``delay``, its ``move`` (steps), its capsules at
     every step of its move as scheduled (``seg_start``, ``seg_end``), its ``corner`` (L-shaped
@@ -216,11 +285,12 @@ class StartScheduler:
         self, scenario: Scenario, step_rad: np.ndarray, margin_mm: float, delay_steps: int = 4, slack: float = 1.2, stride: int = 2,
         max_options: int = 64, swap_tries: int = 1, l_paths: bool = False, space_time: bool = False, cell_steps: int = 2,
         repair: bool = False, first: np.ndarray | None = None, horizon: int | None = None, fixed: _Fixed | None = None,
-        late_corners: bool = False, late: np.ndarray | None = None,
+        late_corners: bool = False, late: np.ndarray | None = None, pair_paths: bool = False,
     ) -> None:
         self.scenario, self.step_rad = scenario, step_rad
         self.delay_steps, self.max_options, self.swap_tries = delay_steps, max_options, swap_tries
         self.l_paths, self.space_time, self.cell_steps, self.repair = l_paths, space_time, cell_steps, repair
+        self.pair_paths = pair_paths
         self.first = np.zeros(scenario.n_positioners, dtype=bool) if first is None else np.asarray(first, dtype=bool)
         self.priority = scenario.priority_rank
         self.inst = scenario.instrument
@@ -306,6 +376,10 @@ class StartScheduler:
             if self.repair:
                 for i in self._unplaced_longest_first():
                     if self._repair_timed(i):
+                        self.unplaced[i] = False
+            if self.pair_paths:
+                for i in self._unplaced_longest_first():
+                    if self._repair_pair(i):
                         self.unplaced[i] = False
         for i, (_, depart) in self.timed.items():
             self.delay[i] = depart[0]
@@ -583,6 +657,71 @@ class StartScheduler:
         return False
 
 
+    def _free_cells(self, tg: _TimedGrid, ignore: int) -> np.ndarray:
+        """``(L + 1, A, B)``: the cells of ``tg``'s positioner free at each layer against its placed
+        neighbours as scheduled, but ``ignore`` (unplaced ones left out: they conflict anyway)."""
+        shape = tg.grid.shape
+        free = np.ones((int(np.prod(shape)), self.n_layers + 1), dtype=bool)
+        for j, close, ok in tg.blocks:
+            if j != ignore and not self.unplaced[j]:
+                free[close] &= ok
+        free[np.ravel_multi_index(tg.s_cell, shape), 0] = True
+        return free.T.reshape((self.n_layers + 1, *shape))
+
+    def _repair_pair(self, i: int) -> bool:
+        """Place the unplaced ``i`` together with a placed neighbour ``j`` (longest move first):
+        both search their timed paths at once, over the pairs of their grid cells x time
+        (:func:`pair_space_time_path`), each around everyone else as scheduled and the two apart
+        by their pair's floor. For two whose ways cross where neither's start nor target leaves
+        the other room (one must step aside while the other passes: a fold's long alpha turn beside
+        a neighbour folding in its way), which the single searches, one around the other's fixed
+        move, cannot find. Undone if no neighbour gives a pair of paths."""
+        nb = self.nb[i]
+        tg_i = None
+        for j, row in sorted(zip(nb.tolist(), self.nb_row[i].tolist(), strict=True), key=lambda p: (-int(self.move[p[0]]), p[0])):
+            if self.unplaced[j] or self.fixed[j]:
+                continue
+            tg_i = self._timed_grid(i) if tg_i is None else tg_i
+            if tg_i is None:
+                return False
+            saved = self._save([i, j])
+            tg_j = self._timed_grid(j)
+            if tg_j is None:
+                self._restore(saved)
+                continue
+            gi, gj = tg_i.grid, tg_j.grid
+            ia, jb = np.arange(len(gi.configs))[:, None], np.arange(len(gj.configs))[None, :]
+            if self.inst.polygons:
+                c = combo_clearances(self.inst, gi.seg_start[:, None], gi.seg_end[:, None], gj.seg_start[None], gj.seg_end[None],
+                                     smallest=True, exact_below=float(self.floor[row]))
+            else:
+                c = smallest_clearance(self.inst, gi.seg_start, gi.seg_end, ia, gj.seg_start, gj.seg_end, jb)
+            together = (c >= self.floor[row]).reshape(*gi.shape, *gj.shape)
+            states = pair_space_time_path(self._free_cells(tg_i, j), self._free_cells(tg_j, i), together,
+                                          tg_i.s_cell + tg_j.s_cell, tg_i.g_cell + tg_j.g_cell)
+            if states is None:
+                self._restore(saved)
+                continue
+            for k, tg, cells in ((i, tg_i, states[:, :2]), (j, tg_j, states[:, 2:])):
+                last = len(cells) - 1
+                while last > 0 and np.all(cells[last - 1] == cells[-1]):  # its stay at the goal
+                    last -= 1
+                self._take_timed(k, cells[: last + 1], tg.grid.coords)
+            return True
+        return False
+
+    def _take_timed(self, i: int, cells: np.ndarray, coords: np.ndarray) -> None:
+        """``i`` on the timed path through ``cells`` (one per layer) of its grid (``coords``)."""
+        waypoints, depart = timed_waypoints(cells, coords, self.cell_steps)
+        at_layers = coords[cells[:, 0], cells[:, 1]]
+        steps = np.arange(self.horizon + 1)
+        self._set_path(i, np.stack([np.interp(steps, np.arange(len(cells)) * self.cell_steps, at_layers[:, k]) for k in range(2)], axis=1))
+        self.delay[i], self.move[i] = 0, (len(cells) - 1) * self.cell_steps
+        self.corner[i] = np.nan
+        self.clean[self.nb_row[i]] = False  # _place must check i's pairs even at no delay
+        self.timed[i] = (waypoints, depart)
+
+
 SPLIT_ABOVE = 10_000
 """A field of more positioners is scheduled in two halves at once (:func:`start_schedule`);
 up to this many (every benchmark set but the scaling one), whole as before."""
@@ -591,7 +730,7 @@ up to this many (every benchmark set but the scaling one), whole as before."""
 def start_schedule(
     scenario: Scenario, step_rad: np.ndarray, margin_mm: float, delay_steps: int = 4, slack: float = 1.2, stride: int = 2,
     max_options: int = 64, swap_tries: int = 1, l_paths: bool = False, space_time: bool = False, cell_steps: int = 2,
-    repair: bool = False,
+    repair: bool = False, pair_paths: bool = False,
 ) -> StartSchedule:
     """Start delays such that the delayed moves keep their margins pairwise (:class:`StartScheduler`).
 
@@ -608,11 +747,11 @@ def start_schedule(
     """
     args = (step_rad, margin_mm, delay_steps, slack, stride, max_options, swap_tries, l_paths, space_time, cell_steps, repair)
     if scenario.n_positioners > SPLIT_ABOVE and len(scenario.pairs):
-        return _split_schedule(scenario, args)
-    return StartScheduler(scenario, *args).run()
+        return _split_schedule(scenario, args, pair_paths)
+    return StartScheduler(scenario, *args, pair_paths=pair_paths).run()
 
 
-def _split_schedule(scenario: Scenario, args: tuple[Any, ...]) -> StartSchedule:
+def _split_schedule(scenario: Scenario, args: tuple[Any, ...], pair_paths: bool = False) -> StartSchedule:
     """:func:`start_schedule` of a large field in three parts. The cut runs across the field at
     its median x; the strip holds every positioner within half the longest pair distance of it,
     so no pair joins the two halves beside it. The strip is scheduled first, alone; then each half
@@ -627,7 +766,7 @@ def _split_schedule(scenario: Scenario, args: tuple[Any, ...]) -> StartSchedule:
     cut = float(np.median(x))
     in_strip = np.abs(x - cut) <= 0.5 * reach
     strip = np.flatnonzero(in_strip)
-    first = StartScheduler(_Part.of(scenario, strip), *args, horizon=horizon)
+    first = StartScheduler(_Part.of(scenario, strip), *args, horizon=horizon, pair_paths=pair_paths)
     strip_schedule = first.run()
     at = np.full(n, -1, dtype=np.int64)
     at[strip] = np.arange(len(strip))
@@ -640,7 +779,8 @@ def _split_schedule(scenario: Scenario, args: tuple[Any, ...]) -> StartSchedule:
         held = in_strip[rows]
         k = at[rows[held]]
         fixed = _Fixed(np.flatnonzero(held), first.delay[k], first.move[k], first.seg_start[k], first.seg_end[k])
-        return rows, StartScheduler(_Part.of(scenario, rows), *args, horizon=horizon, fixed=fixed).run(), held
+        return rows, StartScheduler(_Part.of(scenario, rows), *args, horizon=horizon, fixed=fixed,
+                                         pair_paths=pair_paths).run(), held
 
     left, right, _ = _fork.both(lambda: half(x < cut - 0.5 * reach), lambda: half(x > cut + 0.5 * reach))
     delay = np.zeros(n, dtype=np.int64)

@@ -94,6 +94,11 @@ class MpcSettings(RouteSettings):
                                        low=1, high=1000, group="schedule")
     schedule_repair: bool = setting(True, "a positioner no timed path fits goes first; a placed neighbour is placed again after it",
                                     group="schedule")
+    schedule_pairs: bool = setting(False, "a positioner the repair leaves unplaced searches timed paths together with a placed "
+                                   "neighbour (joint grid x joint grid x time)", group="schedule")
+    schedule_pairs_retry: float = setting(1.5, "with route = auto, an unfold whose reversed fold leaves positioners short or ends "
+                                          "later than this many lower bounds is planned again with schedule_pairs; the shorter "
+                                          "kept (0: never)", low=0.0, high=100.0, group="route")
     # --- the route (fiberplan.planners.coordination; the other route settings: RouteSettings)
     route_fallback_planner: str | None = setting("dnf", "the planner of a leg's last attempts (up to two) when this one stalls, "
                                                  "and of the whole move when this one's routes fall short (null: none, "
