@@ -707,3 +707,27 @@ def test_no_prioritized_candidate_where_the_run_keeps_speed_ramps_between_its_ru
     assert result.settings["motor_limits"]
     assert not [c for c in result.stats["candidates"] if c["strategy"].startswith("prioritized")]
     assert fp.summarize(result)["reached"] == 7
+
+
+def test_an_unfold_whose_fold_straggles_is_planned_again_with_paired_timed_paths():
+    # MOONS 61 unfold seed 6 (moons-capsules): the reversed fold ends at 29.25 s (2.8 x the
+    # bound); planned again with the schedule's paired searches (schedule_pairs) it ends at
+    # 27.95 s and is kept. schedule_pairs_retry = 0 plans the reverse alone, as before.
+    from fiberplan.metrics import lower_bound_s
+
+    sc = fp.make_scenario("moons-capsules", 61, "unfold", 6)
+    result = fp.plan(sc, "mpc")
+    tried = {c["strategy"]: c for c in result.stats["candidates"]}
+    assert set(tried) == {"reverse", "reverse (paired timed paths)"}
+    assert tried["reverse"]["makespan_s"] > 1.5 * lower_bound_s(sc)
+    paired = tried["reverse (paired timed paths)"]
+    assert paired["short"] == 0 and paired["makespan_s"] < tried["reverse"]["makespan_s"]
+    assert result.stats["chosen"] == "reverse (paired timed paths)"
+    summary = _check(sc, result)
+    assert summary["success_rate"] == 1.0 and summary["makespan_s"] == pytest.approx(paired["makespan_s"])
+    alone = fp.plan(sc, "mpc", {"schedule_pairs_retry": 0})
+    assert [c["strategy"] for c in alone.stats["candidates"]] == ["reverse"]
+    assert alone.stats["candidates"][0]["makespan_s"] == tried["reverse"]["makespan_s"]
+    # A fold near its bound is not planned again.
+    near = fp.plan(fp.make_scenario("moons-capsules", 61, "unfold", 0), "mpc")
+    assert [c["strategy"] for c in near.stats["candidates"]] == ["reverse"]

@@ -188,12 +188,14 @@ def _plan_with(scenario: Scenario, planner: str, settings: Any, progress: Progre
         fallback = getattr(settings, "route_fallback_planner", None)
 
         def plan_leg(leg: Scenario, time_limit_s: float | None = None, use_fallback: bool = False,
-                     progress: ProgressCallback | None = None) -> PlanResult:
+                     progress: ProgressCallback | None = None, overrides: Mapping[str, Any] | None = None) -> PlanResult:
             if use_fallback and fallback:
                 other_func, _ = _lookup(fallback)
                 other = dataclasses.replace(make_settings(fallback, leg, {"route": "direct"}), time_limit_s=time_limit_s)
                 return other_func(leg, other, progress)
             leg_settings = direct if time_limit_s is None else dataclasses.replace(direct, time_limit_s=time_limit_s)
+            if overrides:  # (the layer's own variants of a leg: this planner's settings only)
+                leg_settings = dataclasses.replace(leg_settings, **overrides)
             return func(leg, leg_settings, progress)
 
         result = coordination.coordinate(scenario, planner, settings, plan_leg, t0, progress)

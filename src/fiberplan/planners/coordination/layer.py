@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextvars
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -42,6 +43,7 @@ class _Options:
     tails: bool = True  # route_tails
     prioritized_up_to: int = 0  # route_prioritized_up_to
     retract_up_to: int = 0  # route_retract_up_to
+    pairs_above: float = 0.0  # schedule_pairs_retry of a planner with schedule_pairs off (the mpc's), else 0: never
 
     @property
     def solo(self) -> tuple[float, float]:
@@ -568,7 +570,8 @@ def _options(settings: Any, scenario: Scenario) -> _Options:
     rest = 0 if ramp is None or not getattr(settings, "motor_limits", False) else math.ceil(ramp / settings.dt_s - 1e-9)
     return _Options(settings.route_attempts, settings.dt_s if settings.route_restarts else None, settings.route_overlap,
                     float(getattr(settings, "safety_margin_mm", 0.0)), step, settings.dt_s, rest, settings.route_tails,
-                    int(getattr(settings, "route_prioritized_up_to", 0)), int(getattr(settings, "route_retract_up_to", 0)))
+                    int(getattr(settings, "route_prioritized_up_to", 0)), int(getattr(settings, "route_retract_up_to", 0)),
+                    0.0 if getattr(settings, "schedule_pairs", True) else float(getattr(settings, "schedule_pairs_retry", 0.0)))
 
 
 def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Options,
@@ -583,7 +586,13 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
     elif route == "via_fold":
         consider("via_fold", _via_datum(scenario, plan_leg, opts, midway=True))
     elif _is_at_datum(scenario, scenario.start):  # an unfold: the reverse of a fold
-        consider("reverse", _reverse(scenario, plan_leg, opts))
+        found = consider("reverse", _reverse(scenario, plan_leg, opts))
+        if opts.pairs_above and (found.get("short", 1) > 0 or found["makespan_s"] > opts.pairs_above * lower_bound_s(scenario)):
+            # The fold's stragglers: a long alpha turn beside a neighbour folding in its way, which
+            # neither the schedule's single searches nor the loop resolve; planned again with the
+            # two searched together (mpc: schedule_pairs), the shorter kept.
+            paired = functools.partial(plan_leg, overrides={"schedule_pairs": True})
+            consider("reverse (paired timed paths)", _reverse(scenario, paired, opts))
         return "unfold"
     elif _is_at_datum(scenario, scenario.target):
         consider("direct", _direct(scenario, plan_leg, opts))

@@ -52,7 +52,8 @@ class Leg:
 
 PlanLeg = Callable[..., PlanResult]
 """Plans one leg with the run's planner and settings (``route = direct``); ``time_limit_s``
-(optional) stops it early; ``use_fallback`` plans it with the fallback planner instead."""
+(optional) stops it early; ``use_fallback`` plans it with the fallback planner instead;
+``overrides`` (optional) changes settings of the run's planner for this leg."""
 
 RESTART_FRACTIONS = (0.7, 0.8, 0.9, 0.95)
 """A complete leg is planned again from the first sample at which these fractions of its
