@@ -656,7 +656,6 @@ class StartScheduler:
             self._restore(saved)
         return False
 
-
     def _free_cells(self, tg: _TimedGrid, ignore: int) -> np.ndarray:
         """``(L + 1, A, B)``: the cells of ``tg``'s positioner free at each layer against its placed
         neighbours as scheduled, but ``ignore`` (unplaced ones left out: they conflict anyway)."""
