@@ -271,8 +271,8 @@ class StartScheduler:
             starting late (:meth:`_late_corner`: the same duration, another sweep) and keeps the
             one that ends first.
         late: ``(N,)`` positioners whose move starts with that shape (before anyone is placed).
-        pair_paths: with ``space_time``, a positioner still unplaced after the repair searches
-            timed paths together with a placed neighbour (:meth:`_repair_pair`).
+        pair_paths: a positioner still unplaced after the passes above searches timed paths
+            together with a placed neighbour (:meth:`_repair_pair`).
 
     The state is explicit: per positioner its ``delay``, its ``move`` (steps), its capsules at
     every step of its move as scheduled (``seg_start``, ``seg_end``), its ``corner`` (L-shaped
@@ -377,10 +377,10 @@ class StartScheduler:
                 for i in self._unplaced_longest_first():
                     if self._repair_timed(i):
                         self.unplaced[i] = False
-            if self.pair_paths:
-                for i in self._unplaced_longest_first():
-                    if self._repair_pair(i):
-                        self.unplaced[i] = False
+        if self.pair_paths:
+            for i in self._unplaced_longest_first():
+                if self._repair_pair(i):
+                    self.unplaced[i] = False
         for i, (_, depart) in self.timed.items():
             self.delay[i] = depart[0]
         return StartSchedule(self.delay, np.flatnonzero(self.unplaced), self.swaps, self.corner, self.timed)

@@ -94,8 +94,8 @@ class MpcSettings(RouteSettings):
                                        low=1, high=1000, group="schedule")
     schedule_repair: bool = setting(True, "a positioner no timed path fits goes first; a placed neighbour is placed again after it",
                                     group="schedule")
-    schedule_pairs: bool = setting(False, "a positioner the repair leaves unplaced searches timed paths together with a placed "
-                                   "neighbour (joint grid x joint grid x time)", group="schedule")
+    schedule_pairs: bool = setting(False, "a positioner the schedule's other passes leave unplaced searches timed paths together "
+                                   "with a placed neighbour (joint grid x joint grid x time)", group="schedule")
     schedule_pairs_retry: float = setting(1.5, "with route = auto, an unfold whose reversed fold leaves positioners short or ends "
                                           "later than this many lower bounds is planned again with schedule_pairs; the shorter "
                                           "kept (0: never)", low=0.0, high=100.0, group="route")
