@@ -591,25 +591,10 @@ class StartScheduler:
         tg = timed_grid if timed_grid is not None else self._timed_grid(i)
         if tg is None:
             return False
-        shape, coords = tg.grid.shape, tg.grid.coords
-        free = np.ones((int(np.prod(shape)), self.n_layers + 1), dtype=bool)
-        for j, close, ok in tg.blocks:
-            if j != ignore:
-                free[close] &= ok
-        # At layer 0 the start keeps its floor by definition; a departure at once is checked
-        # at the next cell, over the steps within half a layer of layer 1.
-        free[np.ravel_multi_index(tg.s_cell, shape), 0] = True
-        cells = space_time_path(free.T.reshape((self.n_layers + 1, *shape)), tg.s_cell, tg.g_cell)
+        cells = space_time_path(self._free_cells(tg, ignore), tg.s_cell, tg.g_cell)
         if cells is None:
             return False
-        waypoints, depart = timed_waypoints(cells, coords, self.cell_steps)
-        # i's configuration at every step, for the positioners searched after it.
-        at_layers = coords[cells[:, 0], cells[:, 1]]
-        steps = np.arange(self.horizon + 1)
-        self._set_path(i, np.stack([np.interp(steps, np.arange(len(cells)) * self.cell_steps, at_layers[:, k]) for k in range(2)], axis=1))
-        self.delay[i], self.move[i] = 0, (len(cells) - 1) * self.cell_steps
-        self.clean[self.nb_row[i]] = False  # _place must check i's pairs even at no delay
-        self.timed[i] = (waypoints, depart)
+        self._take_timed(i, cells, tg.grid.coords)
         return True
 
     def _save(self, ks: list[int]) -> list[_Placement]:
@@ -656,14 +641,17 @@ class StartScheduler:
             self._restore(saved)
         return False
 
-    def _free_cells(self, tg: _TimedGrid, ignore: int) -> np.ndarray:
-        """``(L + 1, A, B)``: the cells of ``tg``'s positioner free at each layer against its placed
-        neighbours as scheduled, but ``ignore`` (unplaced ones left out: they conflict anyway)."""
+    def _free_cells(self, tg: _TimedGrid, ignore: int = -1, placed_only: bool = False) -> np.ndarray:
+        """``(L + 1, A, B)``: the cells of ``tg``'s positioner free at each layer against its
+        neighbours as scheduled, but ``ignore`` (with ``placed_only``, unplaced ones left out too:
+        they conflict anyway)."""
         shape = tg.grid.shape
         free = np.ones((int(np.prod(shape)), self.n_layers + 1), dtype=bool)
         for j, close, ok in tg.blocks:
-            if j != ignore and not self.unplaced[j]:
+            if j != ignore and not (placed_only and self.unplaced[j]):
                 free[close] &= ok
+        # At layer 0 the start keeps its floor by definition; a departure at once is checked
+        # at the next cell, over the steps within half a layer of layer 1.
         free[np.ravel_multi_index(tg.s_cell, shape), 0] = True
         return free.T.reshape((self.n_layers + 1, *shape))
 
@@ -696,8 +684,8 @@ class StartScheduler:
             else:
                 c = smallest_clearance(self.inst, gi.seg_start, gi.seg_end, ia, gj.seg_start, gj.seg_end, jb)
             together = (c >= self.floor[row]).reshape(*gi.shape, *gj.shape)
-            states = pair_space_time_path(self._free_cells(tg_i, j), self._free_cells(tg_j, i), together,
-                                          tg_i.s_cell + tg_j.s_cell, tg_i.g_cell + tg_j.g_cell)
+            states = pair_space_time_path(self._free_cells(tg_i, j, placed_only=True), self._free_cells(tg_j, i, placed_only=True),
+                                          together, tg_i.s_cell + tg_j.s_cell, tg_i.g_cell + tg_j.g_cell)
             if states is None:
                 self._restore(saved)
                 continue
@@ -706,17 +694,18 @@ class StartScheduler:
                 while last > 0 and np.all(cells[last - 1] == cells[-1]):  # its stay at the goal
                     last -= 1
                 self._take_timed(k, cells[: last + 1], tg.grid.coords)
+            self.corner[j] = np.nan  # (j's L-shaped move, if it had one, is replaced)
             return True
         return False
 
     def _take_timed(self, i: int, cells: np.ndarray, coords: np.ndarray) -> None:
         """``i`` on the timed path through ``cells`` (one per layer) of its grid (``coords``)."""
         waypoints, depart = timed_waypoints(cells, coords, self.cell_steps)
+        # i's configuration at every step, for the positioners searched after it.
         at_layers = coords[cells[:, 0], cells[:, 1]]
         steps = np.arange(self.horizon + 1)
         self._set_path(i, np.stack([np.interp(steps, np.arange(len(cells)) * self.cell_steps, at_layers[:, k]) for k in range(2)], axis=1))
         self.delay[i], self.move[i] = 0, (len(cells) - 1) * self.cell_steps
-        self.corner[i] = np.nan
         self.clean[self.nb_row[i]] = False  # _place must check i's pairs even at no delay
         self.timed[i] = (waypoints, depart)
 
