@@ -4,6 +4,7 @@ reached through the problem's structure, one continuous verified trajectory, not
 from __future__ import annotations
 
 import json
+import multiprocessing
 import subprocess
 import sys
 
@@ -728,6 +729,23 @@ def test_an_unfold_whose_fold_straggles_is_planned_again_with_paired_timed_paths
     alone = fp.plan(sc, "mpc", {"schedule_pairs_retry": 0})
     assert [c["strategy"] for c in alone.stats["candidates"]] == ["reverse"]
     assert alone.stats["candidates"][0]["makespan_s"] == tried["reverse"]["makespan_s"]
-    # A fold near its bound is not planned again.
+    # A fold near its bound is not planned again (the plan started ahead is let go).
     near = fp.plan(fp.make_scenario("moons-capsules", 61, "unfold", 0), "mpc")
     assert [c["strategy"] for c in near.stats["candidates"]] == ["reverse"]
+    assert multiprocessing.active_children() == []
+
+
+def test_the_paired_fold_planned_ahead_in_a_forked_process_is_the_one_planned_after(monkeypatch):
+    # On a dense field the paired fold starts at once on the second core; where nothing forks it
+    # is planned after the first fold, as before: the same trajectory and runs either way.
+    from fiberplan import _fork
+
+    if not _fork.can_fork():
+        pytest.skip("forks only with fork and at least two cores")
+    sc = fp.make_scenario("moons-capsules", 61, "unfold", 6)
+    ahead = fp.plan(sc, "mpc")
+    monkeypatch.setattr(_fork, "can_fork", lambda: False)
+    after = fp.plan(sc, "mpc")
+    assert ahead.stats["chosen"] == after.stats["chosen"] == "reverse (paired timed paths)"
+    assert np.array_equal(ahead.trajectory.joints, after.trajectory.joints)
+    assert ahead.stats["planner_runs"] == after.stats["planner_runs"]

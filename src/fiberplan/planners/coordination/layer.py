@@ -16,7 +16,7 @@ from fiberplan.errors import PlannerError
 from fiberplan.geometry import min_pair_clearance
 from fiberplan.metrics import arrival_times, lower_bound_s, reached_mask
 from fiberplan.outcomes import outcome_labels
-from fiberplan.planners.coordination.fork import CHILD_RUNS, RUN_LOG, both
+from fiberplan.planners.coordination.fork import CHILD_RUNS, RUN_LOG, Ahead, both
 from fiberplan.planners.coordination.legs import Leg, PlanLeg, _park_candidates, complete_leg, exactly_at, leg_scenario, with_neighbours
 from fiberplan.planners.coordination.retime import overlap_legs, ramp_rests
 from fiberplan.planners.coordination.settings import REVERSE_LEG, UNFOLD_REVERSED_LEG
@@ -27,6 +27,11 @@ from fiberplan.trajectory import PlanResult, Trajectory
 DENSE_REACH = 0.8
 """Patrol regions overlap densely when the reach exceeds this fraction of the pitch (MOONS,
 SDSS: 1.0; DESI: 0.58): there the two-leg plan comes first and bounds the direct attempt."""
+
+AHEAD_UP_TO = 10_000
+"""The largest field on which a candidate that may not be needed is planned ahead in a forked
+process (beyond it, a second plan at once would double the memory, and the mpc's start schedule
+uses the second core itself)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -574,6 +579,10 @@ def _options(settings: Any, scenario: Scenario) -> _Options:
                     0.0 if getattr(settings, "schedule_pairs", True) else float(getattr(settings, "schedule_pairs_retry", 0.0)))
 
 
+def _is_dense(scenario: Scenario) -> bool:
+    return scenario.instrument.reach_max_mm > DENSE_REACH * scenario.instrument.pitch_mm
+
+
 def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Options,
                 consider: Callable[[str, list[_Piece] | None], dict[str, Any]]) -> str:
     """Plan along ``route`` (every candidate goes to ``consider``); returns the structure found."""
@@ -586,18 +595,22 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
     elif route == "via_fold":
         consider("via_fold", _via_datum(scenario, plan_leg, opts, midway=True))
     elif _is_at_datum(scenario, scenario.start):  # an unfold: the reverse of a fold
-        found = consider("reverse", _reverse(scenario, plan_leg, opts))
-        if opts.pairs_above and (found.get("short", 1) > 0 or found["makespan_s"] > opts.pairs_above * lower_bound_s(scenario)):
-            # The fold's stragglers: a long alpha turn beside a neighbour folding in its way, which
-            # neither the schedule's single searches nor the loop resolve; planned again with the
-            # two searched together (mpc: schedule_pairs), the shorter kept.
-            paired = functools.partial(plan_leg, overrides={"schedule_pairs": True})
-            consider("reverse (paired timed paths)", _reverse(scenario, paired, opts))
+        # The fold's stragglers: a long alpha turn beside a neighbour folding in its way, which
+        # neither the schedule's single searches nor the loop resolve. A fold that straggles is
+        # planned again with the two searched together (mpc: schedule_pairs), the shorter kept.
+        # On a dense field that second plan starts at once, on the core the first leaves idle,
+        # and is let go if the first does not straggle: the same candidates either way.
+        paired = functools.partial(plan_leg, overrides={"schedule_pairs": True})
+        ahead = opts.pairs_above > 0 and _is_dense(scenario) and scenario.n_positioners <= AHEAD_UP_TO
+        with Ahead(lambda: _reverse(scenario, paired, opts), start=ahead) as again:
+            found = consider("reverse", _reverse(scenario, plan_leg, opts))
+            if opts.pairs_above and (found.get("short", 1) > 0 or found["makespan_s"] > opts.pairs_above * lower_bound_s(scenario)):
+                consider("reverse (paired timed paths)", again.result())
         return "unfold"
     elif _is_at_datum(scenario, scenario.target):
         consider("direct", _direct(scenario, plan_leg, opts))
         return "fold"
-    elif scenario.instrument.reach_max_mm > DENSE_REACH * scenario.instrument.pitch_mm:
+    elif _is_dense(scenario):
         # Dense: the direct plan leaves positioners short on every seed measured, and a fix-up
         # after it was slower than the two-leg plan on every one: the two legs (and in small
         # groups, after the prioritized schedule's candidates, the direct plan with a partial
