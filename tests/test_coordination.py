@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import subprocess
 import sys
 
@@ -735,7 +736,7 @@ def test_an_unfold_whose_fold_straggles_is_planned_again_with_paired_timed_paths
     assert multiprocessing.active_children() == []
 
 
-def test_the_paired_fold_planned_ahead_in_a_forked_process_is_the_one_planned_after(monkeypatch):
+def test_the_paired_fold_planned_ahead_in_a_forked_process_is_the_one_planned_after(monkeypatch, tmp_path):
     # On a dense field the paired fold starts at once on the second core; where nothing forks it
     # is planned after the first fold, as before: the same trajectory and runs either way.
     from fiberplan import _fork
@@ -743,7 +744,15 @@ def test_the_paired_fold_planned_ahead_in_a_forked_process_is_the_one_planned_af
     if not _fork.can_fork():
         pytest.skip("forks only with fork and at least two cores")
     sc = fp.make_scenario("moons-capsules", 61, "unfold", 6)
-    ahead = fp.plan(sc, "mpc")
+    callers = tmp_path / "progress"
+
+    def progress(fraction, phase=None):
+        with open(callers, "a") as f:
+            f.write(f"{os.getpid()}\n")
+
+    ahead = fp.plan(sc, "mpc", progress=progress)
+    # Only this process reports progress (a forked one would draw over the parent's bar).
+    assert set(callers.read_text().split()) == {str(os.getpid())}
     monkeypatch.setattr(_fork, "can_fork", lambda: False)
     after = fp.plan(sc, "mpc")
     assert ahead.stats["chosen"] == after.stats["chosen"] == "reverse (paired timed paths)"

@@ -18,6 +18,12 @@ from typing import Any
 _IN_CHILD = [False]
 
 
+def in_child() -> bool:
+    """Whether this is a forked process of this module (which shows no progress of its own: the
+    parent's progress bar is the one on the screen)."""
+    return _IN_CHILD[0]
+
+
 def can_fork() -> bool:
     """Whether :func:`both` would fork here."""
     return (

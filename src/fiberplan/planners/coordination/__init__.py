@@ -11,7 +11,8 @@ limits and hard stops, and starts where the original ended. So (``formulations/c
   stall far more often than through the datum, where every arm turns the same way);
 - ``auto`` (the default): by the scenario's structure: an unfold is reversed (where the reversed
   fold straggles, the mpc's fold is planned again with its schedule's paired timed paths, the
-  shorter kept: ``schedule_pairs_retry``), a fold planned directly; on instruments whose patrol regions overlap densely (reach > 0.8 pitch: MOONS,
+  shorter kept: ``schedule_pairs_retry``; on a dense field that second fold starts at once on the
+  second core, let go if not needed), a fold planned directly; on instruments whose patrol regions overlap densely (reach > 0.8 pitch: MOONS,
   SDSS) the two-leg plan; elsewhere the direct plan, and where it leaves positioners short, the
   better of a **fix-up** (the direct plan until its last arrival, then only the positioners
   still short, and the neighbours they need, through the datum, everyone else holding) and the

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from fiberplan import _fork
 from fiberplan.errors import PlannerError
 from fiberplan.geometry import min_pair_clearance
 from fiberplan.metrics import arrival_times, lower_bound_s, reached_mask
@@ -679,7 +680,7 @@ def coordinate(
         number, done = len(runs) + 1, 1.0 - 0.5 ** len(runs)
 
         def inner(fraction: float, phase: str | None = None) -> None:  # each run fills half of what is left
-            if progress is not None:
+            if progress is not None and not _fork.in_child():  # (a leg planned in a forked process: the parent's bar shows)
                 progress(done + 0.5 ** number * fraction, f"planner run {number}" + (f": {phase}" if phase else ""))
 
         result = plan_leg(leg, progress=inner, **kwargs)
