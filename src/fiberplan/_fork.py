@@ -63,6 +63,10 @@ class Ahead:
 
         self._proc = ctx.Process(target=run, daemon=False)  # the computation may start worker processes of its own
         self._proc.start()
+        try:  # (also from here, so that a cancel right after the start finds the group)
+            os.setpgid(self._proc.pid, self._proc.pid)
+        except OSError:  # it has set it already, or has ended
+            pass
         child.close()
         self._pipe = parent
 
