@@ -711,14 +711,21 @@ def test_no_prioritized_candidate_where_the_run_keeps_speed_ramps_between_its_ru
     assert fp.summarize(result)["reached"] == 7
 
 
-def test_an_unfold_whose_fold_straggles_is_planned_again_with_paired_timed_paths():
+def test_an_unfold_whose_fold_straggles_is_planned_again_with_paired_timed_paths(monkeypatch, tmp_path):
     # MOONS 61 unfold seed 6 (moons-capsules): the reversed fold ends at 29.25 s (2.8 x the
     # bound); planned again with the schedule's paired searches (schedule_pairs) it ends at
     # 27.95 s and is kept. schedule_pairs_retry = 0 plans the reverse alone, as before.
+    from fiberplan import _fork
     from fiberplan.metrics import lower_bound_s
 
     sc = fp.make_scenario("moons-capsules", 61, "unfold", 6)
-    result = fp.plan(sc, "mpc")
+    callers = tmp_path / "progress"
+
+    def progress(fraction, phase=None):
+        with open(callers, "a") as f:
+            f.write(f"{os.getpid()}\n")
+
+    result = fp.plan(sc, "mpc", progress=progress)
     tried = {c["strategy"]: c for c in result.stats["candidates"]}
     assert set(tried) == {"reverse", "reverse (paired timed paths)"}
     assert tried["reverse"]["makespan_s"] > 1.5 * lower_bound_s(sc)
@@ -727,6 +734,17 @@ def test_an_unfold_whose_fold_straggles_is_planned_again_with_paired_timed_paths
     assert result.stats["chosen"] == "reverse (paired timed paths)"
     summary = _check(sc, result)
     assert summary["success_rate"] == 1.0 and summary["makespan_s"] == pytest.approx(paired["makespan_s"])
+    # On a dense field the paired fold was planned ahead in a forked process, which reports no
+    # progress of its own (it would draw over the parent's bar); where nothing forks it is
+    # planned after the first fold: the same trajectory and planner runs.
+    assert set(callers.read_text().split()) == {str(os.getpid())}
+    if _fork.can_fork():
+        monkeypatch.setattr(_fork, "can_fork", lambda: False)
+        after = fp.plan(sc, "mpc")
+        assert after.stats["chosen"] == "reverse (paired timed paths)"
+        assert np.array_equal(result.trajectory.joints, after.trajectory.joints)
+        assert result.stats["planner_runs"] == after.stats["planner_runs"]
+        monkeypatch.undo()
     alone = fp.plan(sc, "mpc", {"schedule_pairs_retry": 0})
     assert [c["strategy"] for c in alone.stats["candidates"]] == ["reverse"]
     assert alone.stats["candidates"][0]["makespan_s"] == tried["reverse"]["makespan_s"]
@@ -734,27 +752,3 @@ def test_an_unfold_whose_fold_straggles_is_planned_again_with_paired_timed_paths
     near = fp.plan(fp.make_scenario("moons-capsules", 61, "unfold", 0), "mpc")
     assert [c["strategy"] for c in near.stats["candidates"]] == ["reverse"]
     assert multiprocessing.active_children() == []
-
-
-def test_the_paired_fold_planned_ahead_in_a_forked_process_is_the_one_planned_after(monkeypatch, tmp_path):
-    # On a dense field the paired fold starts at once on the second core; where nothing forks it
-    # is planned after the first fold, as before: the same trajectory and runs either way.
-    from fiberplan import _fork
-
-    if not _fork.can_fork():
-        pytest.skip("forks only with fork and at least two cores")
-    sc = fp.make_scenario("moons-capsules", 61, "unfold", 6)
-    callers = tmp_path / "progress"
-
-    def progress(fraction, phase=None):
-        with open(callers, "a") as f:
-            f.write(f"{os.getpid()}\n")
-
-    ahead = fp.plan(sc, "mpc", progress=progress)
-    # Only this process reports progress (a forked one would draw over the parent's bar).
-    assert set(callers.read_text().split()) == {str(os.getpid())}
-    monkeypatch.setattr(_fork, "can_fork", lambda: False)
-    after = fp.plan(sc, "mpc")
-    assert ahead.stats["chosen"] == after.stats["chosen"] == "reverse (paired timed paths)"
-    assert np.array_equal(ahead.trajectory.joints, after.trajectory.joints)
-    assert ahead.stats["planner_runs"] == after.stats["planner_runs"]
