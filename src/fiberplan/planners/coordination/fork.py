@@ -22,15 +22,8 @@ RUN_LOG: list[dict[str, Any]] = []
 
 def both(first: Callable[[], Any], second: Callable[[], Any]) -> tuple[Any, Any]:
     """``(first(), second())``, the second in a forked process where that is safe."""
-
-    def logged() -> tuple[Any, list[dict[str, Any]]]:
-        runs_before = len(RUN_LOG)
-        return second(), list(RUN_LOG[runs_before:])
-
-    a, (b, child_runs), forked = _fork.both(first, logged)
-    if forked:
-        CHILD_RUNS.extend(child_runs)
-    return a, b
+    with Ahead(second) as ahead:
+        return first(), ahead.result()
 
 
 class Ahead:

@@ -694,7 +694,7 @@ class StartScheduler:
                 while last > 0 and np.all(cells[last - 1] == cells[-1]):  # its stay at the goal
                     last -= 1
                 self._take_timed(k, cells[: last + 1], tg.grid.coords)
-            self.corner[j] = np.nan  # (j's L-shaped move, if it had one, is replaced)
+                self.corner[k] = np.nan  # (an L-shaped move it had is replaced by the timed path)
             return True
         return False
 
