@@ -1,0 +1,53 @@
+"""The benchmark scripts' own measuring parts (what their figures rest on)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+linux_rollup = pytest.mark.skipif(not Path("/proc/self/smaps_rollup").exists(), reason="needs Linux's /proc/PID/smaps_rollup")
+
+
+@linux_rollup
+def test_the_memory_a_process_tree_holds_counts_pages_shared_after_a_fork_once() -> None:
+    from scaling import TreePss
+
+    mb = 160
+    with TreePss(every_s=0.02) as alone:
+        block = np.ones(mb * 2**20 // 8)  # touched: resident, private to this process
+        time.sleep(0.3)
+    with TreePss(every_s=0.02) as shared:
+        pid = os.fork()
+        if pid == 0:  # the child only holds the parent's pages (copy-on-write, never written)
+            time.sleep(5)
+            os._exit(0)
+        try:
+            time.sleep(0.5)
+        finally:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+    with TreePss(every_s=0.02) as copied:
+        pid = os.fork()
+        if pid == 0:  # the child writes every page: its own copy
+            block += 1.0
+            time.sleep(5)
+            os._exit(0)
+        try:
+            time.sleep(1.5)
+        finally:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+    assert block[0] == 1.0
+    assert alone.samples > 3 and alone.peak_mb > mb
+    # The child's resident set counts the block again; held together, it is there once.
+    assert shared.peak_mb < alone.peak_mb + 0.3 * mb
+    # Written in the child, it is there twice.
+    assert copied.peak_mb > alone.peak_mb + 0.8 * mb
