@@ -85,8 +85,9 @@ class TreePss:
             self._stop.wait(self.every_s)
 
     def __enter__(self) -> TreePss:
-        if not Path(f"/proc/{os.getpid()}/smaps_rollup").exists():
-            raise SystemExit("--pss needs Linux's /proc/PID/smaps_rollup")
+        pid = os.getpid()
+        if not (Path(f"/proc/{pid}/smaps_rollup").exists() and Path(f"/proc/{pid}/task/{pid}/children").exists()):
+            raise SystemExit("--pss needs Linux's /proc/PID/smaps_rollup and /proc/PID/task/TID/children")
         self._thread.start()
         return self
 

@@ -13,7 +13,10 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-linux_rollup = pytest.mark.skipif(not Path("/proc/self/smaps_rollup").exists(), reason="needs Linux's /proc/PID/smaps_rollup")
+linux_rollup = pytest.mark.skipif(
+    not (Path("/proc/self/smaps_rollup").exists() and Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children").exists()),
+    reason="needs Linux's /proc/PID/smaps_rollup and /proc/PID/task/TID/children",
+)
 
 
 @linux_rollup
