@@ -365,6 +365,14 @@ def test_a_plan_complete_only_through_the_later_fallback_rounds_is_weighed_again
     rescued = False  # a plan complete by the earlier rules is kept as it is
     result = fp.plan(sc, "mpc", OWN_ROUTES)
     assert [c["strategy"] for c in result.stats["candidates"]] == ["direct"]
+    # On a field larger than route_rescue_up_to the rescued plan is kept as it is too (MOONS 500:
+    # the other two cost most of the planning and were not shorter).
+    rescued = True
+    for up_to, tried in ((19, ["direct", "fallback planner"]), (18, ["direct"])):
+        result = fp.plan(sc, "mpc", OWN_ROUTES | {"route_rescue_up_to": up_to})
+        assert [c["strategy"] for c in result.stats["candidates"]] == tried
+    _check(sc, result)
+    np.testing.assert_array_equal(result.trajectory.joints[: len(slow)], slow)
 
 
 def test_when_every_route_leaves_positioners_short_the_fallback_planner_plans_the_whole_move(monkeypatch):

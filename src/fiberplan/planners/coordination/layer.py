@@ -50,6 +50,7 @@ class _Options:
     prioritized_up_to: int = 0  # route_prioritized_up_to
     retract_up_to: int = 0  # route_retract_up_to
     pairs_above: float = 0.0  # schedule_pairs_retry of a planner with schedule_pairs off (the mpc's), else 0: never
+    rescue_up_to: int = 0  # route_rescue_up_to
 
     @property
     def solo(self) -> tuple[float, float]:
@@ -577,7 +578,8 @@ def _options(settings: Any, scenario: Scenario) -> _Options:
     return _Options(settings.route_attempts, settings.dt_s if settings.route_restarts else None, settings.route_overlap,
                     float(getattr(settings, "safety_margin_mm", 0.0)), step, settings.dt_s, rest, settings.route_tails,
                     int(getattr(settings, "route_prioritized_up_to", 0)), int(getattr(settings, "route_retract_up_to", 0)),
-                    0.0 if getattr(settings, "schedule_pairs", True) else float(getattr(settings, "schedule_pairs_retry", 0.0)))
+                    0.0 if getattr(settings, "schedule_pairs", True) else float(getattr(settings, "schedule_pairs_retry", 0.0)),
+                    int(getattr(settings, "route_rescue_up_to", 0)))
 
 
 def _is_dense(scenario: Scenario) -> bool:
@@ -712,8 +714,11 @@ def coordinate(
         return not candidates or min(scores[name][0] for name in candidates) > 0
 
     def rescued() -> bool:
+        # Compared only on fields of up to route_rescue_up_to positioners: on MOONS 500 (moons-capsules,
+        # random) the fallback planner's whole move and the direct plan took most of a rescued plan's
+        # planning (seed 12: 360 of 480 s) and were never shorter (docs/results.md, session 40).
         best = min(candidates, key=lambda name: scores[name]) if candidates else None
-        return best is not None and any(p.rescued for p in candidates[best])
+        return best is not None and any(p.rescued for p in candidates[best]) and scenario.n_positioners <= opts.rescue_up_to
 
     if (short() or rescued()) and fallback and not _WHOLE_FALLBACK.get():
         # Positioners left short: the fallback planner over the whole move, with its own route

@@ -38,6 +38,10 @@ class RouteSettings:
                                            "schedule (reference 003), alone or through a partial retraction of those it leaves "
                                            "short; kept where shorter (0: never)", unit="positioners", low=0, high=1_000_000,
                                            group="route")
+    route_rescue_up_to: int = setting(200, "a complete plan that needed the fallback planner's rounds inside a leg (rescued) is also "
+                                      "compared with the fallback planner's whole move and the direct plan on fields of at most this "
+                                      "many positioners; above, it is kept as it is (a plan left short is always compared)",
+                                      unit="positioners", low=0, high=1_000_000, group="route")
     route_retract_up_to: int = setting(19, "dense groups (reach above 0.8 pitch) of at most this many positioners also try the "
                                        "direct plan and, where it leaves positioners short or late, a partial retraction of those "
                                        "alone, everyone else going straight (two legs of the planner); kept where shorter (0: never)",
