@@ -716,7 +716,7 @@ def coordinate(
     def rescued() -> bool:
         # Compared only on fields of up to route_rescue_up_to positioners: on MOONS 500 (moons-capsules,
         # random) the fallback planner's whole move and the direct plan took most of a rescued plan's
-        # planning (seed 12: 360 of 480 s) and were never shorter (docs/results.md, session 40).
+        # planning (seed 12: 360 of 480 s) and were not shorter on the seeds measured (docs/results.md, session 40).
         best = min(candidates, key=lambda name: scores[name]) if candidates else None
         return best is not None and any(p.rescued for p in candidates[best]) and scenario.n_positioners <= opts.rescue_up_to
 
