@@ -19,6 +19,20 @@ linux_rollup = pytest.mark.skipif(
 )
 
 
+def _with_child(child, seconds: float) -> None:
+    """Fork a process that runs ``child()`` and sleeps; end it after ``seconds``."""
+    pid = os.fork()
+    if pid == 0:
+        child()
+        time.sleep(5)
+        os._exit(0)
+    try:
+        time.sleep(seconds)
+    finally:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+
+
 @linux_rollup
 def test_the_memory_a_process_tree_holds_counts_pages_shared_after_a_fork_once() -> None:
     from scaling import TreePss
@@ -27,27 +41,14 @@ def test_the_memory_a_process_tree_holds_counts_pages_shared_after_a_fork_once()
     with TreePss(every_s=0.02) as alone:
         block = np.ones(mb * 2**20 // 8)  # touched: resident, private to this process
         time.sleep(0.3)
-    with TreePss(every_s=0.02) as shared:
-        pid = os.fork()
-        if pid == 0:  # the child only holds the parent's pages (copy-on-write, never written)
-            time.sleep(5)
-            os._exit(0)
-        try:
-            time.sleep(0.5)
-        finally:
-            os.kill(pid, signal.SIGKILL)
-            os.waitpid(pid, 0)
+    with TreePss(every_s=0.02) as shared:  # the child only holds the parent's pages (copy-on-write, never written)
+        _with_child(lambda: None, 0.5)
+
+    def write() -> None:  # the child writes every page: its own copy
+        block[:] += 1.0
+
     with TreePss(every_s=0.02) as copied:
-        pid = os.fork()
-        if pid == 0:  # the child writes every page: its own copy
-            block += 1.0
-            time.sleep(5)
-            os._exit(0)
-        try:
-            time.sleep(1.5)
-        finally:
-            os.kill(pid, signal.SIGKILL)
-            os.waitpid(pid, 0)
+        _with_child(write, 1.5)
     assert block[0] == 1.0
     assert alone.samples > 3 and alone.peak_mb > mb
     # The child's resident set counts the block again; held together, it is there once.
