@@ -175,8 +175,14 @@ def _gap_rows(central: dict[str, Any], other: dict[str, Any]) -> list[dict[str, 
                       else float(before["makespan_s"] / c["makespan_s"] - 1.0))
         out.append({"scenario": r["scenario"], "seed": r["seed"], "planner": r["planner"], "complete": complete,
                     "makespan_s": r["makespan_s"], "central_makespan_s": None if c is None else c["makespan_s"],
-                    "gap_to_central": gap, "gap_to_central_before": gap_before, "plan_wall_s": r["plan_wall_s"]})
+                    "gap_to_central": gap, "gap_to_central_before": gap_before, "plan_wall_s": r["plan_wall_s"],
+                    # (from the newer compare's own energy-mode solves, --energy-gap: the reference at this planner's makespan)
+                    "energy_gap_to_central": _finite_or_none(r.get("energy_gap_to_central"))})
     return out
+
+
+def _finite_or_none(value: Any) -> float | None:
+    return None if value is None or not np.isfinite(value) else float(value)
 
 
 def cmd_gap(args: argparse.Namespace) -> None:
@@ -189,10 +195,12 @@ def cmd_gap(args: argparse.Namespace) -> None:
         mine = [r for r in rows if r["planner"] == planner]
         gaps = [r["gap_to_central"] for r in mine if r["gap_to_central"] is not None]
         before = [r["gap_to_central_before"] for r in mine if r["gap_to_central_before"] is not None]
+        energy = [r["energy_gap_to_central"] for r in mine if r["energy_gap_to_central"] is not None]
         summary[planner] = {"seeds": len(mine), "complete": sum(r["complete"] for r in mine), "with_reference": len(gaps),
                             "gap_median": _stat(gaps, np.median), "gap_p90": _stat(gaps, lambda a: np.percentile(a, 90)),
                             "gap_max": _stat(gaps, np.max), "within_5_percent": sum(g <= 0.05 for g in gaps),
                             "gap_median_before": _stat(before, np.median),
+                            "energy_gaps": len(energy), "energy_gap_median": _stat(energy, np.median),
                             "plan_wall_s_median": _stat([r["plan_wall_s"] for r in mine], np.median)}
         s = summary[planner]
 
@@ -201,7 +209,8 @@ def cmd_gap(args: argparse.Namespace) -> None:
 
         print(f"{planner}: {s['complete']} of {s['seeds']} complete; against {s['with_reference']} references: gap median "
               f"{pct(s['gap_median'])} (before {pct(s['gap_median_before'])}), p90 {pct(s['gap_p90'])}, max {pct(s['gap_max'])}, "
-              f"within 5 %: {s['within_5_percent']}; plan wall median {s['plan_wall_s_median']:.2f} s")
+              f"within 5 %: {s['within_5_percent']}; plan wall median {s['plan_wall_s_median']:.2f} s"
+              + (f"; energy at equal makespan: median {pct(s['energy_gap_median'])} on {len(energy)}" if energy else ""))
     command = " ".join(["python", "benchmarks/bench.py", *sys.argv[1:]])
     path = write_summary(args.name, {"command": command, "central": str(args.central), "against": str(args.against),
                                      "against_commit": other.get("machine", {}).get("fiberplan_commit"),

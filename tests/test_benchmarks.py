@@ -55,3 +55,17 @@ def test_the_memory_a_process_tree_holds_counts_pages_shared_after_a_fork_once()
     assert shared.peak_mb < alone.peak_mb + 0.3 * mb
     # Written in the child, it is there twice.
     assert copied.peak_mb > alone.peak_mb + 0.8 * mb
+
+
+def test_gap_rows_carry_the_newer_compares_energy_gaps() -> None:
+    from bench import _gap_rows
+
+    def row(planner: str, makespan: float, **extra: object) -> dict[str, object]:
+        return {"scenario": "s0", "seed": 0, "planner": planner, "status": "ok", "clean": True, "success_rate": 1.0,
+                "makespan_s": makespan, "lower_bound_s": 5.0, "plan_wall_s": 1.0} | extra
+
+    central = {"rows": [row("central", 10.0)]}
+    other = {"rows": [row("mpc", 11.0, energy_gap_to_central=0.5), row("dnf", 12.0, energy_gap_to_central=float("nan"))]}
+    mpc, dnf = _gap_rows(central, other)
+    assert mpc["gap_to_central"] == pytest.approx(0.1) and mpc["energy_gap_to_central"] == 0.5
+    assert dnf["gap_to_central"] == pytest.approx(0.2) and dnf["energy_gap_to_central"] is None  # not solved: no figure

@@ -774,7 +774,9 @@ def study_plot(results: Path, kind: str, x: str, by: str, rate: str, out: Path) 
 @click.option("--seed-list", default=None, help="Comma-separated seeds (instead of --seeds).")
 @click.option("--planners", "planner_list", default="central,mpc,dnf", show_default=True, help="Comma-separated planner names.")
 @click.option("--set", "settings", multiple=True, metavar="PLANNER.KEY=VALUE", help="Setting override of one planner (repeatable).")
-@click.option("--energy-gap", is_flag=True, help="Also solve central in energy mode at each planner's makespan.")
+@click.option(
+    "--energy-gap", is_flag=True, help="Also solve central in energy mode at each planner's makespan (central may be left out of --planners)."
+)
 @click.option("--out", type=PATH, default=Path("compare.parquet"), show_default=True, help="Parquet file of the rows.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (rows and aggregates) instead of the table.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")

@@ -70,7 +70,9 @@ def run_compare(
         seeds: scenario seeds.
         kind: scenario kind (``hard`` or a :mod:`fiberplan.generate` kind).
         settings: per-planner setting overrides, e.g. ``{"central": {"steps": 30}}``.
-        energy_gap: also solve central in energy mode at each clean planner's makespan.
+        energy_gap: also solve central in energy mode at each clean planner's makespan (with or
+            without ``central`` among ``planners``: the makespan-mode reference is not needed
+            for it, and can be taken from a stored compare with ``bench.py gap``).
         progress: called with a short label after every run.
         scenario_factory: build the scenario of a seed (default :func:`~fiberplan.studies.scenarios.study_scenario`).
 
@@ -114,7 +116,7 @@ def run_compare(
             if progress is not None:
                 progress(f"{name} seed {seed}")
         add_gaps(seed_rows)
-        if energy_gap and CENTRAL in names:
+        if energy_gap:  # (the energy-mode solves need no makespan-mode central row: central may be left out)
             _add_energy_gaps(scenario, seed_rows, done, settings.get(CENTRAL))
         rows.extend(seed_rows[name] for name in names)
     parameters = {
