@@ -132,3 +132,24 @@ def test_energy_gap_without_the_makespan_reference() -> None:
     # Warm-started from the mpc's own trajectory at its makespan: the reference needs no more energy.
     assert row["energy_gap_to_central"] >= -1e-6
     assert result.parameters["energy_gap"] is True
+
+
+def test_planners_with_the_same_trajectory_share_one_energy_solve(monkeypatch: pytest.MonkeyPatch) -> None:
+    # On small MOONS groups the mpc and the dnf often return the layer's same candidate: the
+    # energy-mode reference at that makespan, from that warm start, is solved once for both.
+    import fiberplan.studies.reference as reference
+    from fiberplan.metrics import energy
+    from fiberplan.planners import plan
+    from fiberplan.studies.compare import _add_energy_gaps
+
+    scenario = hard_scenario("desi", 7, 1)
+    result = plan(scenario, "mpc")
+    calls = []
+    real = reference.central_reference
+    monkeypatch.setattr(reference, "central_reference", lambda *a, **k: calls.append(1) or real(*a, **k))
+    row = {"clean": True, "makespan_s": result.trajectory.times[-1], "energy_rad2_s": energy(result.trajectory)}
+    rows = {"mpc": dict(row), "dnf": dict(row), "prioritized": dict(row, makespan_s=row["makespan_s"] + 0.5)}
+    _add_energy_gaps(scenario, rows, {"mpc": result, "dnf": result, "prioritized": result}, FAST_CENTRAL["central"])
+    assert len(calls) == 2  # mpc and dnf once; a different makespan is a different problem
+    assert rows["mpc"]["central_energy_same_makespan"] == rows["dnf"]["central_energy_same_makespan"] > 0
+    assert rows["prioritized"]["central_energy_same_makespan"] < rows["mpc"]["central_energy_same_makespan"]  # more time, less energy
