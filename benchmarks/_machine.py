@@ -37,6 +37,22 @@ def source_commit() -> str:
     return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
 
 
+def source_tree() -> str:
+    """The git tree id of the imported fiberplan's ``src/`` (equal across commits that leave the
+    code alone), ``-dirty`` with uncommitted changes there; "unknown" outside a git checkout."""
+    import fiberplan
+
+    root = Path(fiberplan.__file__).resolve().parents[2]
+    try:
+        tree = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD:src"], capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--", "src"], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    if tree.returncode != 0:
+        return "unknown"
+    return tree.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+
+
 def machine_info(extra_packages: tuple[str, ...] = ()) -> dict[str, Any]:
     """Platform, CPU count, load average at start, and the versions of the packages that matter."""
     return {

@@ -129,13 +129,16 @@ def _seed_list(text: str) -> list[int]:
 
 
 def cmd_compare(args: argparse.Namespace) -> None:
+    from _machine import source_tree
+
     from fiberplan.studies import run_compare
     from fiberplan.studies.analysis import aggregate
     from fiberplan.studies.compare import CompareResult
 
     name = args.name or f"central_{args.instrument}_{args.n}"
-    if (RESULTS / f"{name}.json").exists() and not args.overwrite:  # checked before hours of solving
-        sys.exit(f"bench.py compare: {RESULTS / f'{name}.json'} exists; give --name for a new file or --overwrite to replace it")
+    path = RESULTS / f"{name}.json"
+    if path.exists() and not (args.overwrite or args.resume):  # checked before hours of solving
+        sys.exit(f"bench.py compare: {path} exists; give --name for a new file, --resume to go on with its seeds, or --overwrite to replace it")
     settings: dict[str, dict[str, Any]] = {}
     for item in args.set:
         key, raw = item.split("=", 1)
@@ -143,14 +146,43 @@ def cmd_compare(args: argparse.Namespace) -> None:
         settings.setdefault(planner, {})[setting_name] = json.loads(raw)
     seeds = _seed_list(args.seed_list) if args.seed_list else list(range(args.seeds))
     command = " ".join(["python", "benchmarks/bench.py", *sys.argv[1:]])
+    tree = source_tree()
     rows: list[dict[str, Any]] = []
-    for done, seed in enumerate(seeds, start=1):  # one seed at a time, the file written after each: a stopped run keeps its seeds
+    done_seeds: list[int] = []
+    if args.resume and path.exists() and not args.overwrite:
+        rows, done_seeds = _resumable(path, tree, {"instrument": args.instrument, "n_positioners": args.n, "scenario_kind": args.kind,
+                                                   "planners": [p.strip() for p in args.planners.split(",") if p.strip()],
+                                                   "settings": settings, "energy_gap": args.energy_gap})
+        print(f"resuming {path}: seeds {done_seeds} kept", flush=True)
+    todo = [s for s in seeds if s not in done_seeds]
+    for seed in todo:  # one seed at a time, the file written after each: a stopped run keeps its seeds (--resume goes on)
         part = run_compare(args.instrument, args.n, args.planners.split(","), [seed], kind=args.kind, settings=settings,
                            energy_gap=args.energy_gap)
         rows.extend(part.rows)
-        result = CompareResult(rows=rows, aggregates=aggregate(rows), parameters=part.parameters | {"seeds": seeds[:done]})
-        path = write_summary(name, {"command": command, "complete": done == len(seeds)} | result.to_dict())
-        print(f"seed {seed} ({done} of {len(seeds)}) -> {path}", flush=True)
+        done_seeds.append(seed)
+        result = CompareResult(rows=rows, aggregates=aggregate(rows), parameters=part.parameters | {"seeds": done_seeds})
+        path = write_summary(name, {"command": command, "complete": set(seeds) <= set(done_seeds), "src_tree": tree} | result.to_dict())
+        print(f"seed {seed} ({len(done_seeds)} of {len(set(seeds) | set(done_seeds))}) -> {path}", flush=True)
+    if not todo:
+        print(f"{path}: every seed asked for is there already", flush=True)
+
+
+def _resumable(path: Path, tree: str, expected: dict[str, Any]) -> tuple[list[dict[str, Any]], list[int]]:
+    """The rows and seeds of a stopped compare ``path``, if it was run with the same parameters
+    and the same code (``src/`` tree); otherwise exit naming what differs."""
+    data = json.loads(path.read_text())
+    if data.get("src_tree") in (None, "unknown") or tree == "unknown" or data["src_tree"].endswith("-dirty") or tree.endswith("-dirty"):
+        sys.exit(f"bench.py compare --resume: cannot tell whether {path} was run with this code (src tree {data.get('src_tree')!r}, "
+                 f"now {tree!r}); give --name for a new file")
+    if data["src_tree"] != tree:
+        sys.exit(f"bench.py compare --resume: {path} was run with other code (src tree {data['src_tree'][:12]}, now {tree[:12]}): "
+                 "its rows and new ones would not be one code state; give --name for a new file")
+    params = data.get("parameters", {})
+    for key, value in expected.items():
+        if _json_ready(params.get(key)) != _json_ready(value):
+            sys.exit(f"bench.py compare --resume: {path} has {key} = {params.get(key)!r}, this command {value!r}; "
+                     "give the same options, or --name for a new file")
+    return list(data["rows"]), [int(s) for s in params.get("seeds", [])]
 
 
 def _gap_rows(central: dict[str, Any], other: dict[str, Any]) -> list[dict[str, Any]]:
@@ -238,6 +270,8 @@ def main() -> None:
     comp.add_argument("--energy-gap", action="store_true")
     comp.add_argument("--name", default=None, help="result file name (default central_<instrument>_<n>)")
     comp.add_argument("--overwrite", action="store_true", help="replace an existing result file of that name")
+    comp.add_argument("--resume", action="store_true",
+                      help="go on with a stopped run of that name (same options, same code): its seeds are kept, the rest planned")
     gap = sub.add_parser("gap", help="a newer compare's planners against a stored central reference (same scenarios)")
     gap.add_argument("--central", type=Path, required=True, help="a compare result holding the central rows")
     gap.add_argument("--against", type=Path, required=True, help="a compare result of the planners to measure")

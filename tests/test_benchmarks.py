@@ -69,3 +69,36 @@ def test_gap_rows_carry_the_newer_compares_energy_gaps() -> None:
     mpc, dnf = _gap_rows(central, other)
     assert mpc["gap_to_central"] == pytest.approx(0.1) and mpc["energy_gap_to_central"] == 0.5
     assert dnf["gap_to_central"] == pytest.approx(0.2) and dnf["energy_gap_to_central"] is None  # not solved: no figure
+
+
+def test_a_stopped_compare_resumes_with_its_seeds_kept(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    import _machine
+    import bench
+
+    monkeypatch.setattr(bench, "RESULTS", tmp_path)
+    monkeypatch.setattr(_machine, "source_tree", lambda: "tree-a")
+
+    def compare(*extra: str) -> None:
+        base = ["bench.py", "compare", "--instrument", "desi", "-n", "7", "--planners", "straight", "--kind", "random", "--name", "c"]
+        monkeypatch.setattr(sys, "argv", base + list(extra))
+        bench.main()
+
+    compare("--seed-list", "0")
+    first = json.loads((tmp_path / "c.json").read_text())
+    assert first["parameters"]["seeds"] == [0] and first["complete"]
+    with pytest.raises(SystemExit, match="exists; give --name"):
+        compare("--seed-list", "0,1")
+    compare("--seed-list", "0,1", "--resume")
+    both = json.loads((tmp_path / "c.json").read_text())
+    assert both["parameters"]["seeds"] == [0, 1] and both["complete"] and [r["seed"] for r in both["rows"]] == [0, 1]
+    assert both["rows"][0]["plan_wall_s"] == first["rows"][0]["plan_wall_s"]  # seed 0 kept, not planned again
+    assert both["aggregates"]["straight"]["runs"] == 2
+    with pytest.raises(SystemExit, match="planners"):  # other options: refused, naming the option
+        compare("--seed-list", "0,1,2", "--resume", "--planners", "straight,dnf")
+    monkeypatch.setattr(_machine, "source_tree", lambda: "tree-b")
+    with pytest.raises(SystemExit, match="other code"):
+        compare("--seed-list", "0,1,2", "--resume")
+    assert json.loads((tmp_path / "c.json").read_text())["parameters"]["seeds"] == [0, 1]  # nothing lost
