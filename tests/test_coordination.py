@@ -509,6 +509,52 @@ def test_two_legs_of_which_one_stalls_meet_where_it_stalled(monkeypatch, stalls)
     assert layer._via_datum(sc, plan_leg, opts) is None
 
 
+def test_an_unfold_whose_reversed_fold_stalls_meets_it_where_it_stalled(monkeypatch):
+    """The reverse route's fold from the targets left short through every round (MOONS 500 under
+    MOONS' zones, seed 4: 1 of 500) ends in a collision-free configuration; the move from the
+    starts is planned to it, and the reversed fold played on from there: every target reached,
+    one verified trajectory, the same stalled leg played backwards at its end."""
+    from fiberplan.planners.coordination import layer
+
+    sc = fp.make_scenario("moons-capsules", 19, "unfold", 1)
+    settings = fp.make_settings("mpc", sc, {"route": "reverse"})
+    opts = layer._options(settings, sc)
+    real = layer.complete_leg
+    stalled = []
+
+    def the_reverse_stalls(leg, *args, **kwargs):
+        done = real(leg, *args, **kwargs)
+        if leg.kind == REVERSE_LEG and not stalled:  # cut where about half its positioners had arrived
+            k = int(np.argmax((~np.all(done.joints == leg.target[None], axis=2)).sum(axis=1) <= 9))
+            assert 0 < k < len(done.joints) - 1
+            stalled.append(done.joints[: k + 1])
+            return layer.Leg(done.joints[: k + 1], done.runs, False, k + 1, done.wall_s)
+        return done
+
+    monkeypatch.setattr(layer, "complete_leg", the_reverse_stalls)
+
+    def plan_leg(leg, time_limit_s=None, use_fallback=False, progress=None):
+        return fp.plan(leg, "mpc", {"route": "direct", "time_limit_s": time_limit_s})
+
+    pieces = layer._reverse(sc, plan_leg, opts)
+    assert pieces is not None and all(p.rescued for p in pieces) and "where the reverse stalled" in pieces[0].name
+    trajectory = layer._join(sc, pieces, opts.dt_s)
+    np.testing.assert_array_equal(trajectory.joints[0], sc.start)
+    np.testing.assert_allclose(trajectory.joints[-1], sc.target, rtol=0, atol=1e-12)  # (the leg's start, through degrees and back)
+    assert fp.verify(sc, trajectory).ok
+    # Every positioner passes exactly through where the reverse stalled, and the stalled leg's own
+    # motion, played backwards, is the trajectory's end.
+    fold = stalled[0]
+    meeting = fold[-1]
+    assert (~np.all(meeting == sc.start, axis=1)).sum() >= 5, "the cut leaves positioners away from the datum"
+    assert all((trajectory.joints[:, i] == meeting[i]).all(axis=1).any() for i in range(19))
+    np.testing.assert_array_equal(trajectory.joints[-len(fold):], fold[::-1])
+    # Without the meeting (no round left), a stalled reverse is no candidate, as before.
+    stalled.clear()
+    monkeypatch.setattr(layer, "MEET_ROUNDS", 0)
+    assert layer._reverse(sc, plan_leg, opts) is None
+
+
 def test_a_straggling_tail_is_planned_backwards_from_the_goal_and_played_in_reverse():
     # MOONS 500 unfold seed 0: the fold from the targets brings 490 of 500 home by 13.7 s and the
     # last at 57.35 s; from the datum out to where those 10 stood takes 17.75 s (prototype).

@@ -96,15 +96,36 @@ def _direct(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piec
 
 
 def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piece] | None:
-    """The move planned from the targets back to the starts, played forwards; ``None`` unless
-    the reversed plan brings every positioner exactly back to its start."""
+    """The move planned from the targets back to the starts, played forwards. A reversed plan
+    that stalls is met where it stalled (:func:`_meet`): the move from the starts is planned to
+    that configuration, and the two join there (overlapped where that is clear). ``None`` unless
+    the plan brings every positioner exactly back to its start, or the two legs join."""
     t0 = time.perf_counter()
     back = leg_scenario(scenario, scenario.target, scenario.start, REVERSE_LEG)
     leg = complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails)
-    if not leg.complete:
+    who = np.flatnonzero(scenario.has_target).tolist()
+    if leg.complete:
+        return [_Piece("reverse (planned from the targets)", _reversed(leg.joints), who, leg.runs, time.perf_counter() - t0,
+                       first_samples=leg.first_samples, rescued=leg.rescued)]
+    # The reversed plan stalled (an unfold under MOONS' zones, MOONS 500 seed 4: 1 of 500 short
+    # after every round; the direct plan 9 short): the starts meet it where it stalled, with the
+    # positioners it brought home holding there (the leg from the starts is then the stalled ones'
+    # own way out, among neighbours at their starts).
+    staying = Leg(scenario.start[None].copy(), 0, True, 1)
+    legs = _meet(scenario, plan_leg, opts, scenario.start, scenario.target, staying, leg)
+    if legs is None:
         return None
-    return [_Piece("reverse (planned from the targets)", _reversed(leg.joints), np.flatnonzero(scenario.has_target).tolist(), leg.runs,
-                   time.perf_counter() - t0, first_samples=leg.first_samples, rescued=leg.rescued)]
+    first, second = legs
+    ahead, played = first.joints, _reversed(second.joints)
+    joints, shift = overlap_legs(scenario, ahead, played, opts.floor_mm, opts.coarse_steps, rest=opts.rest_steps) if opts.overlap else (None, 0)
+    wall, runs = time.perf_counter() - t0, leg.runs + first.runs + second.runs
+    if joints is not None and shift > 0:
+        return [_Piece(f"from the starts to where the reverse stalled, then the reverse (planned from the targets), overlapped by {shift} "
+                       "steps", joints, who, runs, wall, overlap_steps=shift, first_samples=len(ahead) + len(played) - 1, rescued=True)]
+    return [_Piece("from the starts to where the reverse stalled", ahead, who, first.runs, wall, first_samples=first.first_samples,
+                   rescued=True),
+            _Piece("reverse (planned from the targets), met where it stalled", played, who, leg.runs + second.runs, 0.0,
+                   first_samples=second.first_samples, rescued=True)]
 
 
 def _datum(scenario: Scenario) -> np.ndarray:
@@ -229,7 +250,8 @@ MEET_ROUNDS = 3
 
 def _meet(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.ndarray, back_start: np.ndarray,
           first: Leg, second: Leg) -> tuple[Leg, Leg] | None:
-    """The two legs of :func:`_via_datum` when one of them stalls, joined where it stalled.
+    """The two legs of :func:`_via_datum` (or of :func:`_reverse`, whose first leg then stays at
+    the starts) when one of them stalls, joined where it stalled.
 
     The legs need not meet at the datum: any configuration both reach will do, and one in which a
     stalled leg ended is collision-free (with everyone else folded, the few short positioners
