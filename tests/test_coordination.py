@@ -555,6 +555,39 @@ def test_an_unfold_whose_reversed_fold_stalls_meets_it_where_it_stalled(monkeypa
     assert layer._reverse(sc, plan_leg, opts) is None
 
 
+def test_a_fold_whose_direct_plan_stalls_is_completed_from_the_datum(monkeypatch):
+    """The mirror of the reverse route's meeting: a fold's direct plan left short ends in a
+    collision-free configuration; the move from the datum to it is planned and played backwards
+    after it: every target reached, one verified trajectory that starts with the stalled plan."""
+    from fiberplan.planners.coordination import layer
+
+    sc = fp.make_scenario("moons-capsules", 19, "fold", 1)
+    assert layer._is_at_datum(sc, sc.target)
+    real = layer.complete_leg
+    stalled = []
+
+    def the_direct_plan_stalls(leg, *args, **kwargs):
+        done = real(leg, *args, **kwargs)
+        if not stalled:  # the first leg planned is the direct plan: cut where about half had arrived
+            k = int(np.argmax((~np.all(done.joints == leg.target[None], axis=2)).sum(axis=1) <= 9))
+            assert 0 < k < len(done.joints) - 1
+            stalled.append(done.joints[: k + 1])
+            return layer.Leg(done.joints[: k + 1], done.runs, False, k + 1, done.wall_s)
+        return done
+
+    monkeypatch.setattr(layer, "complete_leg", the_direct_plan_stalls)
+    result = fp.plan(sc, "mpc", OWN_ROUTES | {"route_fallback_planner": None})
+    tried = {c["strategy"]: c for c in result.stats["candidates"]}
+    assert tried["direct"]["short"] > 0 and tried["direct, met from the datum"]["short"] == 0
+    assert result.stats["chosen"] == "direct, met from the datum"
+    summary = _check(sc, result)
+    assert summary["reached"] == summary["targets"] == 19
+    head = stalled[0]
+    np.testing.assert_array_equal(result.trajectory.joints[: len(head) - 1], head[:-1])  # the stalled plan first (up to an overlap)
+    meeting = head[-1]
+    assert all((result.trajectory.joints[:, i] == meeting[i]).all(axis=1).any() for i in range(19))
+
+
 def test_a_straggling_tail_is_planned_backwards_from_the_goal_and_played_in_reverse():
     # MOONS 500 unfold seed 0: the fold from the targets brings 490 of 500 home by 13.7 s and the
     # last at 57.35 s; from the datum out to where those 10 stood takes 17.75 s (prototype).

@@ -128,6 +128,28 @@ def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Pie
                    first_samples=second.first_samples, rescued=True)]
 
 
+def _met_from_the_goal(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, direct: _Piece) -> list[_Piece] | None:
+    """A fold whose direct plan stalled, completed the other way round: the move from the goals
+    (the datum) to where it stalled, planned and played backwards (:func:`_meet`, the second leg
+    staying at the goals; the mirror of :func:`_reverse`'s meeting). ``None`` unless they join."""
+    t0 = time.perf_counter()
+    stalled = Leg(direct.joints, direct.attempts, False, direct.first_samples, direct.wall_s)
+    staying = Leg(scenario.target[None].copy(), 0, True, 1)
+    legs = _meet(scenario, plan_leg, opts, scenario.start, scenario.target, stalled, staying)
+    if legs is None:
+        return None
+    first, second = legs
+    ahead, played = first.joints, _reversed(second.joints)
+    joints, shift = overlap_legs(scenario, ahead, played, opts.floor_mm, opts.coarse_steps, rest=opts.rest_steps) if opts.overlap else (None, 0)
+    who, wall = np.flatnonzero(scenario.has_target).tolist(), time.perf_counter() - t0
+    if joints is not None and shift > 0:
+        return [_Piece(f"direct, then from the datum to where it stalled played backwards, overlapped by {shift} steps", joints, who,
+                       first.runs + second.runs, wall, overlap_steps=shift, first_samples=len(ahead) + len(played) - 1, rescued=True)]
+    return [_Piece("direct (until it stalled)", ahead, who, first.runs, 0.0, first_samples=first.first_samples, rescued=True),
+            _Piece("from the datum to where the direct plan stalled, played backwards", played, who, second.runs, wall,
+                   first_samples=second.first_samples, rescued=True)]
+
+
 def _datum(scenario: Scenario) -> np.ndarray:
     datum = np.broadcast_to(np.array(scenario.instrument.datum_rad), (scenario.n_positioners, 2)).copy()
     datum[scenario.locked] = scenario.start[scenario.locked]
@@ -633,7 +655,9 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
                 consider("reverse (paired timed paths)", again.result())
         return "unfold"
     elif _is_at_datum(scenario, scenario.target):
-        consider("direct", _direct(scenario, plan_leg, opts))
+        direct = _direct(scenario, plan_leg, opts)
+        if consider("direct", direct).get("short", 0) > 0:
+            consider("direct, met from the datum", _met_from_the_goal(scenario, plan_leg, opts, direct[0]))
         return "fold"
     elif _is_dense(scenario):
         # Dense: the direct plan leaves positioners short on every seed measured, and a fix-up
