@@ -375,6 +375,31 @@ def test_a_plan_complete_only_through_the_later_fallback_rounds_is_weighed_again
     np.testing.assert_array_equal(result.trajectory.joints[: len(slow)], slow)
 
 
+def test_a_rescued_plan_is_weighed_against_the_direct_plan_too_when_the_fallback_planner_comes_first(monkeypatch):
+    """MOONS 61 unfold seed 13 under MOONS' zones: the reverse met where it stalled (rescued, 171 s),
+    the dnf's whole move 117.5 s, the direct plan 46.55 s: the direct plan is weighed even though
+    the fallback planner's whole move (not itself marked rescued) came first."""
+    from fiberplan.planners.coordination import layer
+
+    sc = fp.make_scenario("desi", 19, "random", 1)
+    quick = fp.plan(sc, "mpc", {"route": "direct"}).trajectory.joints
+    slow = np.concatenate([sc.start[None].repeat(400, axis=0), quick])  # complete, but after a long wait
+    real = layer._strategies
+
+    def slow_rescued_reverse(scenario, route, plan_leg, opts, consider):
+        if layer._WHOLE_FALLBACK.get():  # the fallback planner's own run
+            return real(scenario, route, plan_leg, opts, consider)
+        consider("reverse", [layer._Piece("reverse, met where it stalled", slow, [], 1, 0.0, rescued=True)])
+        return "unfold"
+
+    monkeypatch.setattr(layer, "_strategies", slow_rescued_reverse)
+    result = fp.plan(sc, "mpc", OWN_ROUTES)
+    _check(sc, result)
+    assert [c["strategy"] for c in result.stats["candidates"]] == ["reverse", "fallback planner", "direct (fallback)"]
+    assert result.stats["chosen"] != "reverse"
+    assert not any("left positioners short" in w for w in result.warnings)  # the routes were complete, only longer
+
+
 def test_when_every_route_leaves_positioners_short_the_fallback_planner_plans_the_whole_move(monkeypatch):
     """The fallback planner (the dnf for the mpc) alone over the whole move, with its own route,
     is a candidate once this planner's routes leave positioners short; the result says so."""

@@ -766,7 +766,8 @@ def coordinate(
         best = min(candidates, key=lambda name: scores[name]) if candidates else None
         return best is not None and any(p.rescued for p in candidates[best]) and scenario.n_positioners <= opts.rescue_up_to
 
-    if (short() or rescued()) and fallback and not _WHOLE_FALLBACK.get():
+    weighed = short() or rescued()  # (before the fallback planner's whole move, which may itself be long, joins)
+    if weighed and fallback and not _WHOLE_FALLBACK.get():
         # Positioners left short: the fallback planner over the whole move, with its own route
         # (inside a leg it is tried only from where an attempt stalled, when the tangle may
         # already be beyond it). MOONS 7 random seed 4 under MOONS' zones: 7 of 7 this way, 3 of 7
@@ -774,9 +775,11 @@ def coordinate(
         # fallback rounds inside a leg (legs.Leg.rescued): such legs are long (MOONS 61 unfold,
         # MOONS' zones, seed 23: 51.6 s through them, 13.7 s by the fallback planner's whole move).
         consider("fallback planner", _whole_by_fallback(scenario, fallback, dt))
-    if not candidates or ((short() or rescued()) and "direct" not in candidates):  # the direct plan, with what it reached
+    if not candidates or ((weighed or short() or rescued()) and "direct" not in candidates):  # the direct plan, with what it reached
         # (Also against a rescued plan: MOONS 61 unfold seed 5 under MOONS' zones, the reverse route rescued
-        # 56.8 s, the fallback planner's whole move 2 short, the direct plan complete in 20.75 s.)
+        # 56.8 s, the fallback planner's whole move 2 short, the direct plan complete in 20.75 s. Also where the
+        # fallback planner's whole move then came first: seed 13, the reverse met where it stalled (rescued),
+        # the dnf's whole move 117.5 s, the direct plan 46.55 s.)
         consider("direct (fallback)", _direct(scenario, recorded, opts))
     chosen = min(candidates, key=lambda name: (scores[name], name != "via_datum"))
     if "via_datum" in candidates and chosen != "via_datum":
@@ -803,8 +806,10 @@ def coordinate(
     short = scenario.has_target & ~np.all(final == scenario.target, axis=1) & ~reached_mask(scenario, trajectory)
     warnings = []
     if chosen == "fallback planner":
+        others = [e for e in tried if e["strategy"] != chosen]
+        why = "left positioners short" if all(e.get("short", 1) > 0 for e in others) else "were longer or left positioners short"
         warnings.append(f"{planner} ({route}): the move was planned by the fallback planner {fallback} (this planner's routes "
-                        f"left positioners short: {', '.join(e['strategy'] for e in tried if e['strategy'] != chosen)})")
+                        f"{why}: {', '.join(e['strategy'] for e in others)})")
     if short.any():
         warnings.append(f"{planner} ({route}): {int(short.sum())} of {int(scenario.has_target.sum())} positioners did not reach their "
                         f"targets along any route tried ({', '.join(e['strategy'] for e in tried)})")
