@@ -536,7 +536,7 @@ def test_two_legs_of_which_one_stalls_meet_where_it_stalled(monkeypatch, stalls)
 
 def test_an_unfold_whose_reversed_fold_stalls_meets_it_where_it_stalled(monkeypatch):
     """The reverse route's fold from the targets left short through every round (MOONS 500 under
-    MOONS' zones, seed 4: 1 of 500) ends in a collision-free configuration; the move from the
+    MOONS' zones, seed 4: 5 of 500) ends in a collision-free configuration; the move from the
     starts is planned to it, and the reversed fold played on from there: every target reached,
     one verified trajectory, the same stalled leg played backwards at its end."""
     from fiberplan.planners.coordination import layer

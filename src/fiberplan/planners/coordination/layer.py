@@ -107,8 +107,8 @@ def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Pie
     if leg.complete:
         return [_Piece("reverse (planned from the targets)", _reversed(leg.joints), who, leg.runs, time.perf_counter() - t0,
                        first_samples=leg.first_samples, rescued=leg.rescued)]
-    # The reversed plan stalled (an unfold under MOONS' zones, MOONS 500 seed 4: 1 of 500 short
-    # after every round; the direct plan 9 short): the starts meet it where it stalled, with the
+    # The reversed plan stalled (an unfold under MOONS' zones, MOONS 500 seed 4: 5 of 500 short
+    # after every round, the paired fold 1; the direct plan 9 short): the starts meet it where it stalled, with the
     # positioners it brought home holding there (the leg from the starts is then the stalled ones'
     # own way out, among neighbours at their starts).
     staying = Leg(scenario.start[None].copy(), 0, True, 1)
