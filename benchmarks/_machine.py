@@ -21,14 +21,14 @@ def package_version(name: str) -> str:
         return "not installed"
 
 
-def source_commit() -> str:
-    """The git commit of the fiberplan source that is imported, ``-dirty`` when ``src/`` has
-    uncommitted changes; "unknown" outside a git checkout."""
+def _source_id(rev: str) -> str:
+    """``git rev-parse rev`` in the checkout of the imported fiberplan, ``-dirty`` when ``src/``
+    has uncommitted changes; "unknown" outside a git checkout."""
     import fiberplan
 
     root = Path(fiberplan.__file__).resolve().parents[2]
     try:
-        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", rev], capture_output=True, text=True, timeout=10)
         dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--", "src"], capture_output=True, text=True, timeout=10)
     except (OSError, subprocess.SubprocessError):
         return "unknown"
@@ -37,20 +37,15 @@ def source_commit() -> str:
     return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
 
 
-def source_tree() -> str:
-    """The git tree id of the imported fiberplan's ``src/`` (equal across commits that leave the
-    code alone), ``-dirty`` with uncommitted changes there; "unknown" outside a git checkout."""
-    import fiberplan
+def source_commit() -> str:
+    """The git commit of the fiberplan source that is imported (see :func:`_source_id`)."""
+    return _source_id("HEAD")
 
-    root = Path(fiberplan.__file__).resolve().parents[2]
-    try:
-        tree = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD:src"], capture_output=True, text=True, timeout=10)
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--", "src"], capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    if tree.returncode != 0:
-        return "unknown"
-    return tree.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+
+def source_tree() -> str:
+    """The git tree id of the imported fiberplan's ``src/``: equal across commits that leave the
+    code alone (see :func:`_source_id`)."""
+    return _source_id("HEAD:src")
 
 
 def machine_info(extra_packages: tuple[str, ...] = ()) -> dict[str, Any]:

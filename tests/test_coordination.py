@@ -340,34 +340,41 @@ def test_fallback_rounds_that_move_no_one_end_the_leg_where_it_stood(monkeypatch
     assert len(joints) == 2 and not np.array_equal(joints[-1], sc.start)  # the nudge kept, nothing lost or repeated
 
 
+def _one_slow_candidate(monkeypatch, sc, name: str, structure: str):
+    """The layer's routes replaced by one complete but slow candidate ``name`` (the direct plan
+    after a 400-step wait; the fallback planner's own run keeps its routes). Returns the state
+    whose ``"rescued"`` marks the candidate, and its joints."""
+    from fiberplan.planners.coordination import layer
+
+    quick = fp.plan(sc, "mpc", {"route": "direct"}).trajectory.joints
+    slow = np.concatenate([sc.start[None].repeat(400, axis=0), quick])
+    real, state = layer._strategies, {"rescued": True}
+
+    def slow_candidate(scenario, route, plan_leg, opts, consider):
+        if layer._WHOLE_FALLBACK.get():  # the fallback planner's own run
+            return real(scenario, route, plan_leg, opts, consider)
+        consider(name, [layer._Piece(name, slow, [], 1, 0.0, rescued=state["rescued"])])
+        return structure
+
+    monkeypatch.setattr(layer, "_strategies", slow_candidate)
+    return state, slow
+
+
 def test_a_plan_complete_only_through_the_later_fallback_rounds_is_weighed_against_the_fallback_planner(monkeypatch):
     """MOONS 61 unfold seed 23 under MOONS' zones: the reverse leg completes through the later
     fallback rounds in 51.6 s, the dnf's whole move in 13.7 s: the shorter is returned."""
-    from fiberplan.planners.coordination import layer
-
     sc = fp.make_scenario("desi", 19, "random", 1)
-    quick = fp.plan(sc, "mpc", {"route": "direct"}).trajectory.joints
-    slow = np.concatenate([sc.start[None].repeat(400, axis=0), quick])  # complete, but after a long wait
-    real = layer._strategies
-
-    def slow_rescued(scenario, route, plan_leg, opts, consider):
-        if layer._WHOLE_FALLBACK.get():  # the fallback planner's own run
-            return real(scenario, route, plan_leg, opts, consider)
-        consider("direct", [layer._Piece("direct", slow, [], 1, 0.0, rescued=rescued)])
-        return "general"
-
-    monkeypatch.setattr(layer, "_strategies", slow_rescued)
-    rescued = True
+    state, slow = _one_slow_candidate(monkeypatch, sc, "direct", "general")
     result = fp.plan(sc, "mpc", OWN_ROUTES)
     _check(sc, result)
     assert [c["strategy"] for c in result.stats["candidates"]] == ["direct", "fallback planner"]
     assert result.stats["chosen"] == "fallback planner"
-    rescued = False  # a plan complete by the earlier rules is kept as it is
+    state["rescued"] = False  # a plan complete by the earlier rules is kept as it is
     result = fp.plan(sc, "mpc", OWN_ROUTES)
     assert [c["strategy"] for c in result.stats["candidates"]] == ["direct"]
     # On a field larger than route_rescue_up_to the rescued plan is kept as it is too (MOONS 500:
     # the other two cost most of the planning and were not shorter).
-    rescued = True
+    state["rescued"] = True
     for up_to, tried in ((19, ["direct", "fallback planner"]), (18, ["direct"])):
         result = fp.plan(sc, "mpc", OWN_ROUTES | {"route_rescue_up_to": up_to})
         assert [c["strategy"] for c in result.stats["candidates"]] == tried
@@ -379,20 +386,8 @@ def test_a_rescued_plan_is_weighed_against_the_direct_plan_too_when_the_fallback
     """MOONS 61 unfold seed 13 under MOONS' zones: the reverse met where it stalled (rescued, 171 s),
     the dnf's whole move 117.5 s, the direct plan 46.55 s: the direct plan is weighed even though
     the fallback planner's whole move (not itself marked rescued) came first."""
-    from fiberplan.planners.coordination import layer
-
     sc = fp.make_scenario("desi", 19, "random", 1)
-    quick = fp.plan(sc, "mpc", {"route": "direct"}).trajectory.joints
-    slow = np.concatenate([sc.start[None].repeat(400, axis=0), quick])  # complete, but after a long wait
-    real = layer._strategies
-
-    def slow_rescued_reverse(scenario, route, plan_leg, opts, consider):
-        if layer._WHOLE_FALLBACK.get():  # the fallback planner's own run
-            return real(scenario, route, plan_leg, opts, consider)
-        consider("reverse", [layer._Piece("reverse, met where it stalled", slow, [], 1, 0.0, rescued=True)])
-        return "unfold"
-
-    monkeypatch.setattr(layer, "_strategies", slow_rescued_reverse)
+    _one_slow_candidate(monkeypatch, sc, "reverse", "unfold")
     result = fp.plan(sc, "mpc", OWN_ROUTES)
     _check(sc, result)
     assert [c["strategy"] for c in result.stats["candidates"]] == ["reverse", "fallback planner", "direct (fallback)"]

@@ -103,8 +103,8 @@ def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Pie
     t0 = time.perf_counter()
     back = leg_scenario(scenario, scenario.target, scenario.start, REVERSE_LEG)
     leg = complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails)
-    who = np.flatnonzero(scenario.has_target).tolist()
     if leg.complete:
+        who = np.flatnonzero(scenario.has_target).tolist()
         return [_Piece("reverse (planned from the targets)", _reversed(leg.joints), who, leg.runs, time.perf_counter() - t0,
                        first_samples=leg.first_samples, rescued=leg.rescued)]
     # The reversed plan stalled (an unfold under MOONS' zones, MOONS 500 seed 4: 5 of 500 short
@@ -116,16 +116,22 @@ def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Pie
     if legs is None:
         return None
     first, second = legs
+    return _met_pieces(scenario, opts, first, second, time.perf_counter() - t0, extra_runs=leg.runs,
+                       names=("from the starts to where the reverse stalled", "reverse (planned from the targets), met where it stalled"))
+
+
+def _met_pieces(scenario: Scenario, opts: _Options, first: Leg, second: Leg, wall: float, names: tuple[str, str],
+                extra_runs: int = 0) -> list[_Piece]:
+    """The pieces of two legs joined by :func:`_meet` (``first``, then ``second`` played backwards),
+    overlapped where that is clear (:func:`overlap_legs`): one piece, else the two (both ``rescued``)."""
+    who = np.flatnonzero(scenario.has_target).tolist()
     ahead, played = first.joints, _reversed(second.joints)
     joints, shift = overlap_legs(scenario, ahead, played, opts.floor_mm, opts.coarse_steps, rest=opts.rest_steps) if opts.overlap else (None, 0)
-    wall, runs = time.perf_counter() - t0, leg.runs + first.runs + second.runs
     if joints is not None and shift > 0:
-        return [_Piece(f"from the starts to where the reverse stalled, then the reverse (planned from the targets), overlapped by {shift} "
-                       "steps", joints, who, runs, wall, overlap_steps=shift, first_samples=len(ahead) + len(played) - 1, rescued=True)]
-    return [_Piece("from the starts to where the reverse stalled", ahead, who, first.runs, wall, first_samples=first.first_samples,
-                   rescued=True),
-            _Piece("reverse (planned from the targets), met where it stalled", played, who, leg.runs + second.runs, 0.0,
-                   first_samples=second.first_samples, rescued=True)]
+        return [_Piece(f"{names[0]}, then {names[1]}, overlapped by {shift} steps", joints, who, extra_runs + first.runs + second.runs, wall,
+                       overlap_steps=shift, first_samples=len(ahead) + len(played) - 1, rescued=True)]
+    return [_Piece(names[0], ahead, who, first.runs, wall, first_samples=first.first_samples, rescued=True),
+            _Piece(names[1], played, who, extra_runs + second.runs, 0.0, first_samples=second.first_samples, rescued=True)]
 
 
 def _met_from_the_goal(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, direct: _Piece) -> list[_Piece] | None:
@@ -139,15 +145,8 @@ def _met_from_the_goal(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, di
     if legs is None:
         return None
     first, second = legs
-    ahead, played = first.joints, _reversed(second.joints)
-    joints, shift = overlap_legs(scenario, ahead, played, opts.floor_mm, opts.coarse_steps, rest=opts.rest_steps) if opts.overlap else (None, 0)
-    who, wall = np.flatnonzero(scenario.has_target).tolist(), time.perf_counter() - t0
-    if joints is not None and shift > 0:
-        return [_Piece(f"direct, then from the datum to where it stalled played backwards, overlapped by {shift} steps", joints, who,
-                       first.runs + second.runs, wall, overlap_steps=shift, first_samples=len(ahead) + len(played) - 1, rescued=True)]
-    return [_Piece("direct (until it stalled)", ahead, who, first.runs, 0.0, first_samples=first.first_samples, rescued=True),
-            _Piece("from the datum to where the direct plan stalled, played backwards", played, who, second.runs, wall,
-                   first_samples=second.first_samples, rescued=True)]
+    return _met_pieces(scenario, opts, first, second, time.perf_counter() - t0,
+                       names=("direct (until it stalled)", "from the datum to where the direct plan stalled, played backwards"))
 
 
 def _datum(scenario: Scenario) -> np.ndarray:
@@ -775,7 +774,7 @@ def coordinate(
         # fallback rounds inside a leg (legs.Leg.rescued): such legs are long (MOONS 61 unfold,
         # MOONS' zones, seed 23: 51.6 s through them, 13.7 s by the fallback planner's whole move).
         consider("fallback planner", _whole_by_fallback(scenario, fallback, dt))
-    if not candidates or ((weighed or short() or rescued()) and "direct" not in candidates):  # the direct plan, with what it reached
+    if not candidates or (weighed and "direct" not in candidates):  # the direct plan, with what it reached
         # (Also against a rescued plan: MOONS 61 unfold seed 5 under MOONS' zones, the reverse route rescued
         # 56.8 s, the fallback planner's whole move 2 short, the direct plan complete in 20.75 s. Also where the
         # fallback planner's whole move then came first: seed 13, the reverse met where it stalled (rescued),
