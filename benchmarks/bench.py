@@ -20,6 +20,7 @@ import argparse
 import datetime as dt
 import json
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -156,8 +157,11 @@ def cmd_compare(args: argparse.Namespace) -> None:
         print(f"resuming {path}: seeds {done_seeds} kept", flush=True)
     todo = [s for s in seeds if s not in done_seeds]
     for seed in todo:  # one seed at a time, the file written after each: a stopped run keeps its seeds (--resume goes on)
+        def progress(label: str, began: float = time.perf_counter()) -> None:  # (a seed can take many minutes: say what is done)
+            print(f"  {label} done, {time.perf_counter() - began:.0f} s into the seed", flush=True)
+
         part = run_compare(args.instrument, args.n, args.planners.split(","), [seed], kind=args.kind, settings=settings,
-                           energy_gap=args.energy_gap)
+                           energy_gap=args.energy_gap, progress=progress)
         rows.extend(part.rows)
         done_seeds.append(seed)
         result = CompareResult(rows=rows, aggregates=aggregate(rows), parameters=part.parameters | {"seeds": done_seeds})

@@ -124,7 +124,10 @@ def test_energy_gap_without_the_makespan_reference() -> None:
     # --energy-gap with central left out of the planners still solves the energy-mode reference
     # at each planner's makespan (it was skipped silently before): the makespan-mode reference is
     # not needed for it, and can come from a stored compare (bench.py gap).
-    result = run_compare("desi", 7, ["mpc"], [1], settings=FAST_CENTRAL, energy_gap=True)
+    heard: list[str] = []
+    result = run_compare("desi", 7, ["mpc"], [1], settings=FAST_CENTRAL, energy_gap=True, progress=heard.append)
+    # The energy-mode solve, the long part of such a run, is reported too.
+    assert heard == ["mpc seed 1", "energy reference mpc seed 1"]
     (row,) = result.rows
     assert row["planner"] == "mpc" and row["clean"]
     assert math.isnan(row["gap_to_central"])  # no makespan reference was solved

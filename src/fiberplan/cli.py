@@ -809,7 +809,8 @@ def compare(
             raise click.BadParameter(f"expected PLANNER.KEY=VALUE, found {key!r}", param_hint="--set")
         planner_name, setting = key.split(".", 1)
         per_planner.setdefault(planner_name, {})[setting] = value
-    bar = tqdm(total=len(seed_values) * len(names), desc="compare", disable=True if quiet else None, file=sys.stderr, leave=False)
+    runs = len(names) + (sum(name != "central" for name in names) if energy_gap else 0)  # (the energy references count too)
+    bar = tqdm(total=len(seed_values) * runs, desc="compare", disable=True if quiet else None, file=sys.stderr, leave=False)
 
     def progress(label: str) -> None:
         bar.set_postfix_str(label)

@@ -73,7 +73,8 @@ def run_compare(
         energy_gap: also solve central in energy mode at each clean planner's makespan (with or
             without ``central`` among ``planners``: the makespan-mode reference is not needed
             for it, and can be taken from a stored compare with ``bench.py gap``).
-        progress: called with a short label after every run.
+        progress: called with a short label after every run (and, with ``energy_gap``, after
+            every decentralised planner's energy-mode reference: the long part of such a run).
         scenario_factory: build the scenario of a seed (default :func:`~fiberplan.studies.scenarios.study_scenario`).
 
     A planner that raises on one scenario gives a row with its ``error`` and NaN metrics.
@@ -117,7 +118,7 @@ def run_compare(
                 progress(f"{name} seed {seed}")
         add_gaps(seed_rows)
         if energy_gap:  # (the energy-mode solves need no makespan-mode central row: central may be left out)
-            _add_energy_gaps(scenario, seed_rows, done, settings.get(CENTRAL))
+            _add_energy_gaps(scenario, seed_rows, done, settings.get(CENTRAL), progress=progress, seed=int(seed))
         rows.extend(seed_rows[name] for name in names)
     parameters = {
         "instrument": instrument if isinstance(instrument, str) else instrument.name,
@@ -142,35 +143,49 @@ def add_gaps(seed_rows: dict[str, dict[str, Any]]) -> None:
 
 
 def _add_energy_gaps(
-    scenario: Scenario, seed_rows: dict[str, dict[str, Any]], done: Mapping[str, PlanResult], central_settings: Mapping[str, Any] | None
+    scenario: Scenario, seed_rows: dict[str, dict[str, Any]], done: Mapping[str, PlanResult], central_settings: Mapping[str, Any] | None,
+    progress: Callable[[str], None] | None = None, seed: int | None = None,
 ) -> None:
-    """Energy-mode central at each clean decentralised planner's own makespan (reference 004, table 7.3)."""
+    """Energy-mode central at each clean decentralised planner's own makespan (reference 004, table 7.3);
+    ``progress`` hears of every decentralised planner's row once its reference is there (or not needed)."""
+    solved: dict[tuple[float, bytes], dict[str, Any]] = {}  # planners that returned the same trajectory share one solve
+    for name in seed_rows:
+        if name != CENTRAL:
+            _energy_gap_of(name, scenario, seed_rows, done, central_settings, solved)
+            if progress is not None:
+                progress(f"energy reference {name} seed {seed}")
+
+
+def _energy_gap_of(
+    name: str, scenario: Scenario, seed_rows: dict[str, dict[str, Any]], done: Mapping[str, PlanResult],
+    central_settings: Mapping[str, Any] | None, solved: dict[tuple[float, bytes], dict[str, Any]],
+) -> None:
+    """``name``'s row of ``seed_rows`` with its energy gap, from ``solved`` if a planner with the same
+    trajectory was solved for already (the same problem and warm start: the same deterministic solve)."""
     from fiberplan.metrics import energy, lower_bound_s
     from fiberplan.studies.reference import central_reference
 
-    bound = lower_bound_s(scenario)
-    solved: dict[tuple[float, bytes], dict[str, Any]] = {}  # planners that returned the same trajectory share one solve
-    for name, row in seed_rows.items():
-        if name == CENTRAL or not row["clean"] or name not in done:
-            continue
-        makespan = max(float(row["makespan_s"]), bound)
-        key = (makespan, done[name].trajectory.joints.tobytes())
-        if key in solved:  # (the same problem and warm start: the same deterministic solve)
-            row.update(solved[key])
-            continue
-        overrides = dict(central_settings or {}) | {"mode": "energy", "makespan_s": makespan, "warm_start": [name]}
-        try:
-            ref = central_reference(scenario, overrides, warm_results=[done[name]])
-        except PlannerError as e:
-            row["error"] = solved.setdefault(key, {"error": f"energy-mode central: {e}"})["error"]
-            continue
-        found: dict[str, Any] = {}
-        if ref.stats.get("verified"):
-            e_central = energy(ref.trajectory)
-            found["central_energy_same_makespan"] = e_central
-            if e_central > 0:
-                found["energy_gap_to_central"] = row["energy_rad2_s"] / e_central - 1.0
-        row.update(solved.setdefault(key, found))
+    row = seed_rows[name]
+    if not row["clean"] or name not in done:
+        return
+    makespan = max(float(row["makespan_s"]), lower_bound_s(scenario))
+    key = (makespan, done[name].trajectory.joints.tobytes())
+    if key in solved:
+        row.update(solved[key])
+        return
+    overrides = dict(central_settings or {}) | {"mode": "energy", "makespan_s": makespan, "warm_start": [name]}
+    try:
+        ref = central_reference(scenario, overrides, warm_results=[done[name]])
+    except PlannerError as e:
+        row["error"] = solved.setdefault(key, {"error": f"energy-mode central: {e}"})["error"]
+        return
+    found: dict[str, Any] = {}
+    if ref.stats.get("verified"):
+        e_central = energy(ref.trajectory)
+        found["central_energy_same_makespan"] = e_central
+        if e_central > 0:
+            found["energy_gap_to_central"] = row["energy_rad2_s"] / e_central - 1.0
+    row.update(solved.setdefault(key, found))
 
 
 def write_parquet(rows: Sequence[Mapping[str, Any]], path: str | Path) -> Path:
