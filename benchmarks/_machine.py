@@ -26,13 +26,18 @@ def _source_id(rev: str) -> str:
     has uncommitted changes; "unknown" outside a git checkout."""
     import fiberplan
 
-    root = Path(fiberplan.__file__).resolve().parents[2]
+    root = Path(fiberplan.__file__).resolve().parents[2]  # <checkout>/src/fiberplan/__init__.py
     try:
+        top = subprocess.run(["git", "-C", str(root), "rev-parse", "--show-toplevel"], capture_output=True, text=True, timeout=10)
+        # (An installed copy inside some other repository, a virtual environment in a checkout say,
+        # is not that repository's code.)
+        if top.returncode != 0 or Path(top.stdout.strip()).resolve() != root or not (root / "src" / "fiberplan").is_dir():
+            return "unknown"
         head = subprocess.run(["git", "-C", str(root), "rev-parse", rev], capture_output=True, text=True, timeout=10)
         dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--", "src"], capture_output=True, text=True, timeout=10)
     except (OSError, subprocess.SubprocessError):
         return "unknown"
-    if head.returncode != 0:
+    if head.returncode != 0 or dirty.returncode != 0:
         return "unknown"
     return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
 

@@ -138,6 +138,10 @@ def cmd_compare(args: argparse.Namespace) -> None:
 
     name = args.name or f"central_{args.instrument}_{args.n}"
     path = RESULTS / f"{name}.json"
+    if args.resume and args.overwrite:
+        sys.exit("bench.py compare: --resume keeps the seeds of a stopped run, --overwrite replaces them; give one of the two")
+    if args.resume and not path.exists():
+        sys.exit(f"bench.py compare --resume: there is no {path} to go on with; check --name, or leave out --resume to start it")
     if path.exists() and not (args.overwrite or args.resume):  # checked before hours of solving
         sys.exit(f"bench.py compare: {path} exists; give --name for a new file, --resume to go on with its seeds, or --overwrite to replace it")
     settings: dict[str, dict[str, Any]] = {}
@@ -223,6 +227,12 @@ def _finite_or_none(value: Any) -> float | None:
 
 def cmd_gap(args: argparse.Namespace) -> None:
     """Gaps of a newer run of the decentralised planners to a stored central reference."""
+    out = RESULTS / f"{args.name}.json"
+    if out.exists() and not args.overwrite:  # (the name may be one of the inputs: hours of solves)
+        sys.exit(f"bench.py gap: {out} exists; give --name for a new file, or --overwrite to replace it")
+    for given in (args.central, args.against):
+        if not given.is_file():
+            sys.exit(f"bench.py gap: no result file {given}")
     central = json.loads(Path(args.central).read_text())
     other = json.loads(Path(args.against).read_text())
     rows = _gap_rows(central, other)
@@ -280,6 +290,7 @@ def main() -> None:
     gap.add_argument("--central", type=Path, required=True, help="a compare result holding the central rows")
     gap.add_argument("--against", type=Path, required=True, help="a compare result of the planners to measure")
     gap.add_argument("--name", required=True, help="result file name")
+    gap.add_argument("--overwrite", action="store_true", help="replace an existing result file of that name")
     args = parser.parse_args()
     {"run": cmd_run, "table": cmd_table, "compare": cmd_compare, "gap": cmd_gap}[args.command](args)
 

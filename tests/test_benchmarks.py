@@ -102,3 +102,47 @@ def test_a_stopped_compare_resumes_with_its_seeds_kept(tmp_path: Path, monkeypat
     with pytest.raises(SystemExit, match="other code"):
         compare("--seed-list", "0,1,2", "--resume")
     assert json.loads((tmp_path / "c.json").read_text())["parameters"]["seeds"] == [0, 1]  # nothing lost
+    with pytest.raises(SystemExit, match="give one of the two"):  # keep and replace at once: refused
+        compare("--seed-list", "0,1,2", "--resume", "--overwrite")
+    with pytest.raises(SystemExit, match="no .* to go on with"):  # a mistyped name is not a new run
+        compare("--seed-list", "0", "--resume", "--name", "d")
+    assert not (tmp_path / "d.json").exists()
+
+
+def test_gap_does_not_overwrite_a_result(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import json
+
+    import bench
+
+    monkeypatch.setattr(bench, "RESULTS", tmp_path)
+    stored = tmp_path / "central_x.json"
+    stored.write_text(json.dumps({"rows": []}))
+    monkeypatch.setattr(sys, "argv", ["bench.py", "gap", "--central", str(stored), "--against", str(stored), "--name", "central_x"])
+    with pytest.raises(SystemExit, match="exists; give --name"):  # the reference itself, hours of solves
+        bench.main()
+    assert json.loads(stored.read_text()) == {"rows": []}
+    monkeypatch.setattr(sys, "argv", ["bench.py", "gap", "--central", str(tmp_path / "none.json"), "--against", str(stored), "--name", "g"])
+    with pytest.raises(SystemExit, match="no result file"):
+        bench.main()
+
+
+def test_an_installed_copy_inside_another_repository_has_no_commit(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # fiberplan installed (not editable) into a virtual environment inside some git repository:
+    # that repository's HEAD is not the imported code's commit.
+    import subprocess
+
+    import _machine
+
+    import fiberplan
+
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    subprocess.run(["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@example.org", "commit", "-q", "--allow-empty",
+                    "-m", "a commit HEAD names"], check=True)
+    copy = tmp_path / ".venv" / "lib" / "python3.11" / "site-packages" / "fiberplan" / "__init__.py"
+    copy.parent.mkdir(parents=True)
+    copy.write_text("")
+    monkeypatch.setattr(fiberplan, "__file__", str(copy))
+    assert _machine.source_commit() == "unknown" and _machine.source_tree() == "unknown"
+    # The checkout itself is recognised (this test runs from one, or from a copy without git).
+    monkeypatch.undo()
+    assert _machine.source_commit() == "unknown" or len(_machine.source_commit().removesuffix("-dirty")) == 40

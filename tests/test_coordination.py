@@ -541,9 +541,11 @@ def test_an_unfold_whose_reversed_fold_stalls_meets_it_where_it_stalled(monkeypa
     opts = layer._options(settings, sc)
     real = layer.complete_leg
     stalled = []
+    runs = []  # the planner runs of every leg planned
 
     def the_reverse_stalls(leg, *args, **kwargs):
         done = real(leg, *args, **kwargs)
+        runs.append(done.runs)
         if leg.kind == REVERSE_LEG and not stalled:  # cut where about half its positioners had arrived
             k = int(np.argmax((~np.all(done.joints == leg.target[None], axis=2)).sum(axis=1) <= 9))
             assert 0 < k < len(done.joints) - 1
@@ -569,6 +571,7 @@ def test_an_unfold_whose_reversed_fold_stalls_meets_it_where_it_stalled(monkeypa
     assert (~np.all(meeting == sc.start, axis=1)).sum() >= 5, "the cut leaves positioners away from the datum"
     assert all((trajectory.joints[:, i] == meeting[i]).all(axis=1).any() for i in range(19))
     np.testing.assert_array_equal(trajectory.joints[-len(fold):], fold[::-1])
+    assert sum(p.attempts for p in pieces) == sum(runs)  # each leg's runs once (the stalled one was counted twice)
     # Without the meeting (no round left), a stalled reverse is no candidate, as before.
     stalled.clear()
     monkeypatch.setattr(layer, "MEET_ROUNDS", 0)
@@ -600,6 +603,7 @@ def test_a_fold_whose_direct_plan_stalls_is_completed_from_the_datum(monkeypatch
     tried = {c["strategy"]: c for c in result.stats["candidates"]}
     assert tried["direct"]["short"] > 0 and tried["direct, met from the datum"]["short"] == 0
     assert result.stats["chosen"] == "direct, met from the datum"
+    assert result.stats["n_via_datum"] == 0  # (no leg through the datum; counted by the legs' names before)
     summary = _check(sc, result)
     assert summary["reached"] == summary["targets"] == 19
     head = stalled[0]

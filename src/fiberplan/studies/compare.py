@@ -149,6 +149,7 @@ def _add_energy_gaps(
     """Energy-mode central at each clean decentralised planner's own makespan (reference 004, table 7.3);
     ``progress`` hears of every decentralised planner's row once its reference is there (or not needed)."""
     solved: dict[tuple[float, bytes], dict[str, Any]] = {}  # planners that returned the same trajectory share one solve
+    # (keyed by the makespan and the trajectory's times and joints; each row's gap from its own energy)
     for name in seed_rows:
         if name != CENTRAL:
             _energy_gap_of(name, scenario, seed_rows, done, central_settings, solved)
@@ -169,23 +170,23 @@ def _energy_gap_of(
     if not row["clean"] or name not in done:
         return
     makespan = max(float(row["makespan_s"]), lower_bound_s(scenario))
-    key = (makespan, done[name].trajectory.joints.tobytes())
-    if key in solved:
-        row.update(solved[key])
-        return
-    overrides = dict(central_settings or {}) | {"mode": "energy", "makespan_s": makespan, "warm_start": [name]}
-    try:
-        ref = central_reference(scenario, overrides, warm_results=[done[name]])
-    except PlannerError as e:
-        row["error"] = solved.setdefault(key, {"error": f"energy-mode central: {e}"})["error"]
-        return
-    found: dict[str, Any] = {}
-    if ref.stats.get("verified"):
-        e_central = energy(ref.trajectory)
-        found["central_energy_same_makespan"] = e_central
+    trajectory = done[name].trajectory
+    key = (makespan, trajectory.times.tobytes() + trajectory.joints.tobytes())
+    if key not in solved:
+        overrides = dict(central_settings or {}) | {"mode": "energy", "makespan_s": makespan, "warm_start": [name]}
+        try:
+            ref = central_reference(scenario, overrides, warm_results=[done[name]])
+        except PlannerError as e:
+            solved[key] = {"error": f"energy-mode central: {e}"}
+        else:
+            solved[key] = {"central_energy_same_makespan": energy(ref.trajectory)} if ref.stats.get("verified") else {}
+    found = solved[key]
+    if "error" in found:
+        row["error"] = found["error"]
+    elif "central_energy_same_makespan" in found:
+        row["central_energy_same_makespan"] = e_central = found["central_energy_same_makespan"]
         if e_central > 0:
-            found["energy_gap_to_central"] = row["energy_rad2_s"] / e_central - 1.0
-    row.update(solved.setdefault(key, found))
+            row["energy_gap_to_central"] = row["energy_rad2_s"] / e_central - 1.0
 
 
 def write_parquet(rows: Sequence[Mapping[str, Any]], path: str | Path) -> Path:

@@ -69,6 +69,7 @@ class _Piece:
     overlap_steps: int = 0
     first_samples: int = 0  # samples before restarts and overlap shortened it (0: not known)
     rescued: bool = False  # a leg of it needed the later fallback rounds (legs.Leg.rescued)
+    through_datum: bool = False  # a leg of the two-leg plan (the stats' via_datum_ids count its movers)
 
 
 def _join(scenario: Scenario, pieces: list[_Piece], dt: float, rest: int = 0) -> Trajectory:
@@ -116,7 +117,8 @@ def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Pie
     if legs is None:
         return None
     first, second = legs
-    return _met_pieces(scenario, opts, first, second, time.perf_counter() - t0, extra_runs=leg.runs,
+    # (The stalled leg's runs count once: it is the second leg unless _meet planned that one again.)
+    return _met_pieces(scenario, opts, first, second, time.perf_counter() - t0, extra_runs=0 if second.joints is leg.joints else leg.runs,
                        names=("from the starts to where the reverse stalled", "reverse (planned from the targets), met where it stalled"))
 
 
@@ -251,12 +253,12 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     if joints is not None:
         return [_Piece(f"{label}fold to the datum, then unfold from it (planned from the targets), overlapped by {shift} steps{met}",
                        joints, who, first.runs + second.runs, first.wall_s + second.wall_s, overlap_steps=shift,
-                       first_samples=plain, rescued=rescued)]
+                       first_samples=plain, rescued=rescued, through_datum=True)]
     return [
         _Piece(f"{label}fold to the datum{met}", fold_joints, who, first.runs, first.wall_s, first_samples=first.first_samples,
-               rescued=rescued),
+               rescued=rescued, through_datum=True),
         _Piece(f"{label}unfold from the datum (planned from the targets){met}", unfold, who, second.runs, second.wall_s,
-               first_samples=second.first_samples, rescued=rescued),
+               first_samples=second.first_samples, rescued=rescued, through_datum=True),
     ]
 
 
@@ -758,12 +760,16 @@ def coordinate(
     def short() -> bool:
         return not candidates or min(scores[name][0] for name in candidates) > 0
 
+    def best() -> str:
+        # Fewest short, then the shortest; on a tie the two-leg plan; never worse than the two-leg plan.
+        name = min(candidates, key=lambda n: (scores[n], n != "via_datum"))
+        return "via_datum" if "via_datum" in candidates and scores[name] > scores["via_datum"] else name
+
     def rescued() -> bool:
         # Compared only on fields of up to route_rescue_up_to positioners: on MOONS 500 (moons-capsules,
         # random) the fallback planner's whole move and the direct plan took most of a rescued plan's
         # planning (seed 12: 360 of 480 s) and were not shorter on the seeds measured (docs/results.md, session 40).
-        best = min(candidates, key=lambda name: scores[name]) if candidates else None
-        return best is not None and any(p.rescued for p in candidates[best]) and scenario.n_positioners <= opts.rescue_up_to
+        return bool(candidates) and any(p.rescued for p in candidates[best()]) and scenario.n_positioners <= opts.rescue_up_to
 
     weighed = short() or rescued()  # (before the fallback planner's whole move, which may itself be long, joins)
     if weighed and fallback and not _WHOLE_FALLBACK.get():
@@ -780,11 +786,7 @@ def coordinate(
         # fallback planner's whole move then came first: seed 13, the reverse met where it stalled (rescued),
         # the dnf's whole move 117.5 s, the direct plan 46.55 s.)
         consider("direct (fallback)", _direct(scenario, recorded, opts))
-    chosen = min(candidates, key=lambda name: (scores[name], name != "via_datum"))
-    if "via_datum" in candidates and chosen != "via_datum":
-        # Never worse than the two-leg plan.
-        if scores[chosen] > scores["via_datum"]:
-            chosen = "via_datum"
+    chosen = best()  # (the one rescued() looked at, had no candidate joined since)
     pieces = candidates[chosen]
     trajectory = _join(scenario, pieces, dt, opts.rest_steps)
     stats: dict[str, Any] = {"route": route, "structure": structure, "chosen": chosen, "candidates": tried,
@@ -825,7 +827,7 @@ def _leg_stats(scenario: Scenario, pieces: list[_Piece], dt: float) -> dict[str,
         legs.append({"leg": p.name, "t0_s": t, "t1_s": t + duration, "attempts": p.attempts, "moved": len(p.moved),
                      "plan_wall_s": p.wall_s, "overlap_s": p.overlap_steps * dt, "first_plan_s": ((p.first_samples or len(p.joints)) - 1) * dt})
         t += duration
-    carried = sorted({int(scenario.ids[i]) for p in pieces if "datum" in p.name for i in p.moved})
+    carried = sorted({int(scenario.ids[i]) for p in pieces if p.through_datum for i in p.moved})
     first = [(p.first_samples or len(p.joints)) - 1 for p in pieces]
     # first_plan_s: the duration as the legs were first planned, one after the other, before restarts
     # and overlap shortened them (through the datum: the plain two-leg plan).
