@@ -340,3 +340,20 @@ def test_zone_smallest_compiled_equals_numpy_bit_for_bit(exact_below):
     grid = zones.smallest(MOONS, si[:3, None], ei[:3, None], sj[None], ej[None], exact_below)
     assert grid.shape == (3, n)
     np.testing.assert_array_equal(grid, _smallest_numpy(MOONS, si[:3, None], ei[:3, None], sj[None], ej[None], exact_below))
+
+
+def test_zone_smallest_by_index_equals_the_gathered_rows_bit_for_bit():
+    # The start schedule reads a few positioners' moves step by step: by index, the same numbers
+    # as gathering the rows first, on one shared table or two.
+    rng = np.random.default_rng(7)
+    si, ei, sj, ej = _random_pairs(rng, 300)
+    p = rng.integers(0, 300, (4, 1, 25))
+    q = rng.integers(0, 300, (1, 5, 25))
+    for exact_below in (zones.EXACT_BELOW_MM, 0.5):
+        want = zones.smallest(MOONS, si[p], ei[p], sj[q], ej[q], exact_below)
+        assert want.shape == (4, 5, 25) and (want < 0.0).any()
+        np.testing.assert_array_equal(zones.smallest_indexed(MOONS, si, ei, p, sj, ej, q, exact_below), want)
+        np.testing.assert_array_equal(zones.smallest_indexed(MOONS, si, ei, p, si, ei, q, exact_below),
+                                      zones.smallest(MOONS, si[p], ei[p], si[q], ei[q], exact_below))
+    with pytest.raises(ValueError, match="q_index outside"):
+        zones.smallest_indexed(MOONS, si, ei, p, sj, ej, q + 300)

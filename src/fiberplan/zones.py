@@ -191,6 +191,46 @@ def smallest(instrument: Instrument, start_i: np.ndarray, end_i: np.ndarray, sta
     return out.reshape(lead)
 
 
+def smallest_indexed(instrument: Instrument, p_start: np.ndarray, p_end: np.ndarray, p_index: np.ndarray, q_start: np.ndarray,
+                     q_end: np.ndarray, q_index: np.ndarray, exact_below: float = EXACT_BELOW_MM) -> np.ndarray:
+    """:func:`smallest` of configurations taken by index: ``smallest(instrument, p_start[p_index],
+    p_end[p_index], q_start[q_index], q_end[q_index], exact_below)`` without the gathered copies
+    (the start schedule asks for many steps of a few positioners' moves at once).
+
+    Args:
+        p_start, p_end: ``(P, C, 2)`` capsule ends of ``P`` configurations of one side.
+        p_index: indices into their first axis, any shape.
+        q_start, q_end, q_index: the other side's (the same arrays as ``p_*`` allowed).
+
+    Returns:
+        The smallest clearances, shaped as the two index arrays broadcast.
+
+    Raises:
+        ValueError: an index outside its table.
+    """
+    exact_below = min(float(exact_below), EXACT_BELOW_MM)
+    tables = _tables(instrument)
+    ip, iq = np.broadcast_arrays(np.asarray(p_index, dtype=np.int64), np.asarray(q_index, dtype=np.int64))
+    shape = ip.shape
+    ip, iq = np.ascontiguousarray(ip.ravel()), np.ascontiguousarray(iq.ravel())
+    for name, index, table in (("p_index", ip, p_start), ("q_index", iq, q_start)):
+        if index.size and (int(index.min()) < 0 or int(index.max()) >= len(table)):  # the compiled loop checks no bounds
+            raise ValueError(f"{name} outside [0, {len(table)})")
+    si, ei = (np.ascontiguousarray(a, dtype=np.float64) for a in (p_start, p_end))
+    ci = _centres(tables, si, ei)
+    if q_start is p_start and q_end is p_end:
+        sj, ej, cj = si, ei, ci
+    else:
+        sj, ej = (np.ascontiguousarray(a, dtype=np.float64) for a in (q_start, q_end))
+        cj = _centres(tables, sj, ej)
+    out = np.empty(ip.size)
+    capsule_kernels.zone_smallest(
+        si, ei, ci, ip, sj, ej, cj, iq, tables.pair_a, tables.pair_b, tables.disc_radius, tables.pair_poly_a, tables.pair_poly_b,
+        tables.pair_radius_sum, tables.pair_combos, tables.pair_offsets, tables.combo_ca, tables.combo_cb, tables.combo_radii,
+        tables.zone_rows_flat, tables.zone_offsets, tables.zone_is_polygon, exact_below, out)
+    return out.reshape(shape)
+
+
 def pair_clearance(
     instrument: Instrument, base_xy: np.ndarray, orient: np.ndarray, joints: np.ndarray, pairs: np.ndarray, *, gradient: bool = False,
 ) -> PairClearance:
