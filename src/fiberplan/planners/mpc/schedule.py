@@ -399,15 +399,19 @@ class StartScheduler:
             steps, c = s.shape[1], s.shape[2]
             flat_s, flat_e = s.reshape(-1, c, 2), e.reshape(-1, c, 2)
             return smallest_clearance(self.inst, flat_s, flat_e, np.asarray(i) * steps + ti, flat_s, flat_e, np.asarray(j) * steps + tj)
-        # Polygon zones: the steps of the few positioners asked about, read by index (gathering
-        # (D, J, K, C, 2) copies first took most of this call's time on MOONS 500).
+        # Polygon zones: the steps of the positioners asked about, read by index, not gathered as
+        # (D, J, K, C, 2) copies first (a MOONS 500 fold leg's peak: 1.9 GB against 2.6 GB).
         i, j = np.asarray(i), np.asarray(j)
-        used = np.unique(np.concatenate([i.ravel(), j.ravel()]))  # (before broadcasting: a few positioners)
-        row = np.empty(len(s), dtype=np.int64)
-        row[used] = np.arange(len(used))
         steps, c = s.shape[1], s.shape[2]
-        table_s, table_e = s[used].reshape(-1, c, 2), e[used].reshape(-1, c, 2)
-        p, q = row[i] * steps + ti, row[j] * steps + tj
+        used = np.unique(np.concatenate([i.ravel(), j.ravel()]))  # (before broadcasting: a few positioners)
+        if 2 * len(used) > len(s):  # most of them (the pairs' checks at the start): the whole table, in place
+            table_s, table_e = s.reshape(-1, c, 2), e.reshape(-1, c, 2)
+            p, q = i * steps + ti, j * steps + tj
+        else:
+            row = np.empty(len(s), dtype=np.int64)
+            row[used] = np.arange(len(used))
+            table_s, table_e = s[used].reshape(-1, c, 2), e[used].reshape(-1, c, 2)
+            p, q = row[i] * steps + ti, row[j] * steps + tj
         return zones.smallest_indexed(self.inst, table_s, table_e, p, table_s, table_e, q,
                                       exact_below=zones.EXACT_BELOW_MM if exact_below is None else exact_below)
 
