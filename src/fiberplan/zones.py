@@ -174,21 +174,13 @@ def smallest(instrument: Instrument, start_i: np.ndarray, end_i: np.ndarray, sta
     planners' searches ask for this over large grids). A smaller ``exact_below`` (at most
     :data:`EXACT_BELOW_MM`) takes fewer exact distances: the result then decides ``>= t``
     exactly only for thresholds ``t <= exact_below``."""
-    exact_below = min(float(exact_below), EXACT_BELOW_MM)
-    tables = _tables(instrument)
     lead = np.broadcast_shapes(start_i.shape[:-2], start_j.shape[:-2])
     c = start_i.shape[-2]
     # Each side's configurations as rows, read by index where the leading axes broadcast.
-    i_rows, j_rows = (np.broadcast_to(np.arange(int(np.prod(a.shape[:-2], dtype=np.int64))).reshape(a.shape[:-2]), lead).ravel()
+    i_rows, j_rows = (np.broadcast_to(np.arange(int(np.prod(a.shape[:-2], dtype=np.int64))).reshape(a.shape[:-2]), lead)
                       for a in (start_i, start_j))
-    si, ei, sj, ej = (np.ascontiguousarray(a, dtype=np.float64).reshape(-1, c, 2) for a in (start_i, end_i, start_j, end_j))
-    ci, cj = _centres(tables, si, ei), _centres(tables, sj, ej)
-    out = np.empty(len(i_rows))
-    capsule_kernels.zone_smallest(
-        si, ei, ci, i_rows, sj, ej, cj, j_rows, tables.pair_a, tables.pair_b, tables.disc_radius, tables.pair_poly_a, tables.pair_poly_b,
-        tables.pair_radius_sum, tables.pair_combos, tables.pair_offsets, tables.combo_ca, tables.combo_cb, tables.combo_radii,
-        tables.zone_rows_flat, tables.zone_offsets, tables.zone_is_polygon, exact_below, out)
-    return out.reshape(lead)
+    si, ei, sj, ej = (np.asarray(a).reshape(-1, c, 2) for a in (start_i, end_i, start_j, end_j))
+    return smallest_indexed(instrument, si, ei, i_rows, sj, ej, j_rows, exact_below)
 
 
 def smallest_indexed(instrument: Instrument, p_start: np.ndarray, p_end: np.ndarray, p_index: np.ndarray, q_start: np.ndarray,

@@ -761,9 +761,8 @@ def coordinate(
         return not candidates or min(scores[name][0] for name in candidates) > 0
 
     def best() -> str:
-        # Fewest short, then the shortest; on a tie the two-leg plan; never worse than the two-leg plan.
-        name = min(candidates, key=lambda n: (scores[n], n != "via_datum"))
-        return "via_datum" if "via_datum" in candidates and scores[name] > scores["via_datum"] else name
+        # Fewest short, then the shortest; on a tie the two-leg plan (so never worse than it).
+        return min(candidates, key=lambda n: (scores[n], n != "via_datum"))
 
     def rescued() -> bool:
         # Compared only on fields of up to route_rescue_up_to positioners: on MOONS 500 (moons-capsules,
