@@ -165,7 +165,23 @@ def plan(
                         f"{_short(scenario, free)} short (the motor limits are left to `fiberplan profiles`)")
                 result = dataclasses.replace(free, stats=free.stats | {"motor_governor": "dropped"}, warnings=(*free.warnings, note))
             result = dataclasses.replace(result, plan_wall_s=time.perf_counter() - t0)
+    if getattr(settings, "stretch", False):
+        result = _stretched(scenario, result, settings, progress, t0)
     return result
+
+
+def _stretched(scenario: Scenario, result: PlanResult, settings: Any, progress: ProgressCallback | None, t0: float) -> PlanResult:
+    """``result`` with each positioner's move spread over more of the makespan where clear (``stretch``)."""
+    from fiberplan.planners.stretch import stretch
+    from fiberplan.trajectory import Trajectory
+
+    if progress is not None:
+        progress(1.0, "stretching the moves")
+    done = stretch(scenario, result.trajectory.times, result.trajectory.joints, float(settings.safety_margin_mm))
+    stats = dict(result.stats or {}) | {"stretch": {"positioners": done.positioners, "energy_before_rad2_s": done.energy_before,
+                                                    "energy_after_rad2_s": done.energy_after}}
+    return dataclasses.replace(result, trajectory=Trajectory(result.trajectory.times, done.joints), stats=stats,
+                               plan_wall_s=time.perf_counter() - t0)
 
 
 def _short(scenario: Scenario, result: PlanResult) -> int:

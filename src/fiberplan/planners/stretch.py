@@ -1,0 +1,247 @@
+"""Each positioner's move spread over the plan's makespan where its neighbours allow
+(``stretch``; ``formulations/coordination.md``, Stretching the moves).
+
+The decentralised planners drive every joint at full speed and stop: each positioner arrives as
+early as it can, and then waits for the last one. At the same makespan that costs energy
+(:func:`fiberplan.metrics.energy`, :math:`\\sum_i \\int \\|\\dot q_i\\|^2 dt`): a path of joint-space
+length :math:`L` traversed in time :math:`D` needs at least :math:`L^2 / D`, reached at constant
+speed, so a positioner that arrives at half the makespan uses at least twice what it needs
+(the energy gaps of ``docs/results.md``, session 39).
+
+Here every positioner that moves and arrives by the makespan's sample (most energy to save
+first) is offered its own path again, timed anew on the plan's time grid over a longer window:
+
+- the window from its departure, or from the start, to the makespan's sample, or half or a
+  quarter of the way there from its arrival;
+- along the path either with its own timing scaled (its waits kept, in proportion) or at
+  constant speed (the least energy for the path).
+
+The candidate with the least energy that keeps every neighbour pair at least ``floor`` apart at
+every sample (the smaller of the safety margin and the pair's own smallest clearance in the
+plan), clear between samples (the motion bound, bisected where it is not small against the
+clearance: the verifier's test), within the joint speeds, and, where the instrument states a
+motor minimum speed, with no more samples below it than its own, replaces the positioner's
+samples; the next positioner is checked against the moves as they now are, and the positioners
+refused are offered again (:data:`PASSES` rounds). The path, hence the
+hard stops, and each positioner's start, end and the makespan are unchanged; the positioners that
+do not reach their target are left as planned. The result is verified whole by the caller.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fiberplan.geometry import clearance_between, motion_bound, point_extents
+from fiberplan.metrics import arrival_times, reached_mask
+from fiberplan.scenario import Scenario
+
+WINDOW_DIVISORS = (1, 2, 4)
+"""The windows offered end at the makespan's sample, or half or a quarter of the way to it from
+the positioner's arrival; each starts at the start or at its departure."""
+
+PASSES = 3
+"""Rounds over the positioners: one stretched may leave room for another refused before."""
+
+BISECTIONS = 8
+"""Halvings of a step whose motion bound is not small against the clearance at its ends; a piece
+still not proven clear after them rejects the candidate (conservative)."""
+
+
+@dataclass(frozen=True)
+class Stretched:
+    """The stretched joints and what changed."""
+
+    joints: np.ndarray
+    positioners: int  # positioners whose samples changed
+    energy_before: float
+    energy_after: float
+
+
+def _energy(column: np.ndarray, dt: np.ndarray) -> float:
+    """Energy of one positioner's samples ``(T, 2)`` on steps ``dt`` ``(T - 1,)``."""
+    return float(np.sum(np.diff(column, axis=0) ** 2 / dt[:, None]))
+
+
+def _span(column: np.ndarray) -> tuple[int, int] | None:
+    """``(f, g)``: the positioner moves from sample ``f`` to sample ``g`` (``None`` if it holds still)."""
+    moving = np.any(column[1:] != column[:-1], axis=1)
+    if not moving.any():
+        return None
+    return int(np.argmax(moving)), int(len(moving) - np.argmax(moving[::-1]))
+
+
+def _retimed(column: np.ndarray, times: np.ndarray, f: int, g: int, a: int, b: int, even: bool) -> np.ndarray:
+    """The positioner's path from sample ``f`` to ``g`` played from sample ``a`` to ``b`` (``a <= f``,
+    ``b >= g``): its own timing scaled, or at constant speed along the path (``even``)."""
+    new = np.empty_like(column)
+    new[: a + 1] = column[f]
+    new[b:] = column[g]
+    t = times[a + 1 : b]
+    share = (t - times[a]) / (times[b] - times[a])  # (0, 1)
+    seg = column[f : g + 1]
+    if even:
+        length = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(seg, axis=0), axis=1))])
+        keep = np.concatenate([[True], np.diff(length) > 0.0])  # the waits dropped
+        x, seg = length[keep], seg[keep]
+        u = share * x[-1]
+    else:
+        x = times[f : g + 1]
+        u = times[f] + share * (times[g] - times[f])
+    new[a + 1 : b, 0] = np.interp(u, x, seg[:, 0])
+    new[a + 1 : b, 1] = np.interp(u, x, seg[:, 1])
+    return new
+
+
+class _Checker:
+    """Clearances of one positioner's candidate samples against its neighbours' current ones."""
+
+    def __init__(self, scenario: Scenario, joints: np.ndarray, margin_mm: float):
+        self.scenario = scenario
+        self.inst = scenario.instrument
+        self.joints = joints  # (T, N, 2), updated in place as candidates are accepted
+        self.rho = point_extents(self.inst)
+        pairs = scenario.pairs
+        self.neighbours: list[list[int]] = [[] for _ in range(scenario.n_positioners)]
+        for i, j in pairs.tolist():
+            self.neighbours[i].append(j)
+            self.neighbours[j].append(i)
+        self.margin = margin_mm
+        self._floor: dict[tuple[int, int], float] = {}
+        self._original = joints.copy()
+
+    def clearances(self, i: int, column: np.ndarray, others: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """``(J, T)`` smallest clearances of ``i`` at ``column`` to ``others`` at ``joints``."""
+        s = self.scenario
+        t = len(column)
+        rows_j = np.repeat(others, t)
+        q_i = np.tile(column, (len(others), 1))
+        q_j = joints[:, others].transpose(1, 0, 2).reshape(-1, 2)
+        c = clearance_between(self.inst, s.base_xy[np.full(len(rows_j), i)], s.orient[np.full(len(rows_j), i)], q_i,
+                              s.base_xy[rows_j], s.orient[rows_j], q_j)
+        return c.min(axis=1).reshape(len(others), t)
+
+    def floors(self, i: int, others: np.ndarray) -> np.ndarray:
+        """The smaller of the margin and each pair's smallest clearance at the plan's samples."""
+        missing = [j for j in others.tolist() if (min(i, j), max(i, j)) not in self._floor]
+        if missing:
+            c = self.clearances(i, self._original[:, i], np.array(missing), self._original)
+            for j, low in zip(missing, c.min(axis=1).tolist(), strict=True):
+                self._floor[(min(i, j), max(i, j))] = min(self.margin, low)
+        return np.array([self._floor[(min(i, j), max(i, j))] for j in others.tolist()])
+
+    def clear(self, i: int, column: np.ndarray) -> bool:
+        """Whether ``column`` keeps every pair of ``i`` at its floor at the samples and clear between them."""
+        others = np.array(sorted(self.neighbours[i]), dtype=np.int64)
+        if not len(others):
+            return True
+        c = self.clearances(i, column, others, self.joints)  # (J, T)
+        if np.any(c < self.floors(i, others)[:, None]):
+            return False
+        move_i = motion_bound(self.rho, np.abs(np.diff(column, axis=0)))  # (T - 1,)
+        move_j = motion_bound(self.rho, np.abs(np.diff(self.joints[:, others], axis=0))).T  # (J, T - 1)
+        bound = move_i[None, :] + move_j
+        c_lo, c_hi = c[:, :-1], c[:, 1:]
+        jj, kk = np.nonzero(bound >= np.minimum(c_lo, c_hi))
+        if not len(jj):
+            return True
+        return self._bisect(i, column, others, jj, kk, c_lo[jj, kk], c_hi[jj, kk], bound[jj, kk])
+
+    def _bisect(self, i: int, column: np.ndarray, others: np.ndarray, jj: np.ndarray, kk: np.ndarray, c_lo: np.ndarray,
+                c_hi: np.ndarray, bound: np.ndarray) -> bool:
+        s = self.scenario
+        lo, hi = np.zeros(len(jj)), np.ones(len(jj))
+        for _ in range(BISECTIONS):
+            mid = 0.5 * (lo + hi)
+            j = others[jj]
+            q_i = (1 - mid)[:, None] * column[kk] + mid[:, None] * column[kk + 1]
+            q_j = (1 - mid)[:, None] * self.joints[kk, j] + mid[:, None] * self.joints[kk + 1, j]
+            rows_i = np.full(len(j), i)
+            c_mid = clearance_between(self.inst, s.base_xy[rows_i], s.orient[rows_i], q_i, s.base_xy[j], s.orient[j],
+                                      q_j).min(axis=1)
+            if np.any(c_mid < 0.0):
+                return False
+            half = 0.5 * bound
+            jj, kk = np.concatenate([jj, jj]), np.concatenate([kk, kk])
+            lo, hi = np.concatenate([lo, mid]), np.concatenate([mid, hi])
+            c_lo, c_hi = np.concatenate([c_lo, c_mid]), np.concatenate([c_mid, c_hi])
+            bound = np.concatenate([half, half])
+            still = bound >= np.minimum(c_lo, c_hi)
+            if not still.any():
+                return True
+            jj, kk, lo, hi, c_lo, c_hi, bound = jj[still], kk[still], lo[still], hi[still], c_lo[still], c_hi[still], bound[still]
+        return False
+
+
+def _slow_samples(column: np.ndarray, dt: np.ndarray, min_speed: np.ndarray) -> int:
+    """Moving samples of ``column`` below the motor minimum speed ``(2,)``."""
+    speed = np.abs(np.diff(column, axis=0)) / dt[:, None]
+    return int(np.sum((speed > 0.0) & (speed < min_speed[None, :] * (1 - 1e-9))))
+
+
+def stretch(scenario: Scenario, times: np.ndarray, joints: np.ndarray, margin_mm: float) -> Stretched:
+    """``joints`` (``(T, N, 2)`` on ``times``) with each positioner's move spread out where clear
+    (see the module docstring); the input is not modified."""
+    times = np.asarray(times, dtype=float)
+    joints = np.array(joints, dtype=float, copy=True)
+    dt = np.diff(times)
+    from fiberplan.trajectory import Trajectory
+
+    trajectory = Trajectory(times, joints)
+    reached = reached_mask(scenario, trajectory)
+    arrive = arrival_times(scenario, trajectory)
+    before = float(sum(_energy(joints[:, i], dt) for i in range(scenario.n_positioners)))
+    if len(times) < 3 or not reached.any():
+        return Stretched(joints, 0, before, before)
+    end = int(np.searchsorted(times, np.nanmax(arrive[reached])))  # the makespan's sample
+    inst = scenario.instrument
+    top = np.asarray(inst.speeds_rad_s, dtype=float)
+    min_speed = np.asarray(inst.motors.min_speed_rad_s, dtype=float) if inst.motors.min_speed_rad_s is not None else None
+    checker = _Checker(scenario, joints, margin_mm)
+    movable = reached | ~scenario.has_target
+    movable &= ~scenario.locked
+
+    offers: list[tuple[float, int, list[tuple[float, np.ndarray]]]] = []
+    for i in np.flatnonzero(movable).tolist():
+        column = joints[:, i]
+        span = _span(column)
+        if span is None or span[1] > end:
+            continue
+        f, g = span
+        own = _energy(column, dt)
+        windows = [(a, g + (end - g) // d) for d in WINDOW_DIVISORS for a in (0, f)]
+        candidates = []
+        for a, b in dict.fromkeys(windows):
+            if b < g:
+                continue
+            for even in (True, False):
+                new = _retimed(column, times, f, g, a, b, even)
+                if np.any(np.abs(np.diff(new, axis=0)) > top[None, :] * dt[:, None] * (1 + 1e-9)):
+                    continue
+                if min_speed is not None and _slow_samples(new, dt, min_speed) > _slow_samples(column, dt, min_speed):
+                    continue
+                e = _energy(new, dt)
+                if e < own * (1 - 1e-9):
+                    candidates.append((e, new))
+        if candidates:
+            candidates.sort(key=lambda c: c[0])
+            offers.append((own - candidates[0][0], i, candidates))
+    offers.sort(key=lambda o: (-o[0], o[1]))
+    changed: set[int] = set()
+    for _ in range(PASSES):
+        left = []
+        for offer in offers:
+            _, i, candidates = offer
+            for _, new in candidates:
+                if checker.clear(i, new):
+                    joints[:, i] = new
+                    changed.add(i)
+                    break
+            else:
+                left.append(offer)
+        if len(left) == len(offers):
+            break
+        offers = left
+    after = float(sum(_energy(joints[:, i], dt) for i in range(scenario.n_positioners)))
+    return Stretched(joints, len(changed), before, after)

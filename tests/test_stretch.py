@@ -1,0 +1,89 @@
+"""Each positioner's move spread over the makespan where clear (planners/stretch.py, setting
+``stretch``): less energy, the same makespan, starts and ends, verified whole."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import fiberplan as fp
+from fiberplan.errors import SettingsError
+from fiberplan.metrics import arrival_times, energy, reached_mask
+from fiberplan.planners import stretch as st
+from fiberplan.studies.scenarios import hard_scenario
+from fiberplan.trajectory import Trajectory
+
+
+def test_a_lone_move_at_constant_speed_over_the_whole_makespan_halves_its_energy():
+    times = np.linspace(0.0, 2.0, 201)
+    column = np.zeros((201, 2))
+    column[:101, 0] = np.linspace(0.0, 1.0, 101)  # 1 rad in the first second, then still
+    column[101:, 0] = 1.0
+    new = st._retimed(column, times, 0, 100, 0, 200, even=True)
+    dt = np.diff(times)
+    assert st._energy(new, dt) == pytest.approx(0.5 * st._energy(column, dt))
+    np.testing.assert_array_equal(new[[0, -1]], column[[0, -1]])
+    # A wait inside the move: scaled keeps it (in proportion), constant speed drops it.
+    waiting = np.concatenate([np.linspace(0, 0.5, 51), np.full(50, 0.5), np.linspace(0.5, 1.0, 51)[1:], np.ones(50)])
+    column = np.stack([waiting, np.zeros(201)], axis=1)
+    f, last = st._span(column)
+    assert (f, last) == (0, 150)
+    scaled = st._retimed(column, times, f, last, 0, 200, even=False)
+    even = st._retimed(column, times, f, last, 0, 200, even=True)
+    assert np.sum(np.diff(scaled[:, 0]) == 0.0) > 30  # the wait, stretched
+    np.testing.assert_allclose(np.diff(even[:, 0]), 1.0 / 200)
+    assert st._energy(even, dt) < st._energy(scaled, dt) < st._energy(column, dt)
+
+
+@pytest.mark.parametrize(("instrument", "n", "seed"), [("desi", 19, 0), ("desi", 7, 4), ("sdss", 7, 3)])
+def test_the_stretched_plan_verifies_with_less_energy_and_the_same_makespan(instrument, n, seed):
+    sc = hard_scenario(instrument, n, seed)
+    plain = fp.plan(sc, "mpc")
+    result = fp.plan(sc, "mpc", {"stretch": True})
+    report = fp.verify(sc, result.trajectory)
+    assert report.ok, report.to_dict()["collision_events"][:2]
+    before, after = fp.summarize(plain), fp.summarize(result, report)
+    assert after["reached"] == before["reached"] == n
+    assert after["makespan_s"] == before["makespan_s"]
+    assert after["energy_rad2_s"] < 0.9 * before["energy_rad2_s"]
+    assert result.stats["stretch"]["positioners"] >= 1
+    assert result.stats["stretch"]["energy_after_rad2_s"] == pytest.approx(after["energy_rad2_s"])
+    np.testing.assert_array_equal(result.trajectory.joints[[0, -1]], plain.trajectory.joints[[0, -1]])
+    assert report.min_clearance_mm >= min(result.settings["safety_margin_mm"], fp.verify(sc, plain.trajectory).min_clearance_mm) - 1e-12
+
+
+def test_unchecked_stretching_collides_so_the_check_is_what_keeps_it_clear(monkeypatch):
+    sc = hard_scenario("desi", 7, 0)
+    plain = fp.plan(sc, "mpc")
+    times, joints = plain.trajectory.times, plain.trajectory.joints
+    checked = st.stretch(sc, times, joints, 0.025)
+    assert fp.verify(sc, Trajectory(times, checked.joints)).ok
+    monkeypatch.setattr(st._Checker, "clear", lambda self, i, column: True)
+    unchecked = st.stretch(sc, times, joints, 0.025)
+    assert unchecked.positioners > checked.positioners
+    assert fp.verify(sc, Trajectory(times, unchecked.joints)).n_collisions > 0
+    np.testing.assert_array_equal(joints, plain.trajectory.joints)  # the input is not modified
+
+
+def test_no_positioner_gets_more_samples_below_the_motor_minimum():
+    sc = hard_scenario("moons", 7, 2)
+    plain = fp.plan(sc, "mpc")
+    times = plain.trajectory.times
+    done = st.stretch(sc, times, plain.trajectory.joints, 0.072)
+    assert done.positioners >= 1
+    dt = np.diff(times)
+    low = np.asarray(sc.instrument.motors.min_speed_rad_s)
+    for i in range(sc.n_positioners):
+        assert st._slow_samples(done.joints[:, i], dt, low) <= st._slow_samples(plain.trajectory.joints[:, i], dt, low)
+    stretched = Trajectory(times, done.joints)
+    assert fp.verify(sc, stretched).ok
+    assert energy(stretched) < energy(plain.trajectory)
+    arrive, reached = arrival_times(sc, stretched), reached_mask(sc, stretched)
+    assert reached.all() and np.nanmax(arrive) == np.nanmax(arrival_times(sc, plain.trajectory))
+
+
+def test_stretch_is_a_setting_of_the_route_planners_only():
+    sc = hard_scenario("desi", 7, 0)
+    assert fp.plan(sc, "dnf", {"stretch": True}).stats["stretch"]["positioners"] >= 1
+    with pytest.raises(SettingsError, match="stretch"):
+        fp.plan(sc, "straight", {"stretch": True})
