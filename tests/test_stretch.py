@@ -58,7 +58,7 @@ def test_unchecked_stretching_collides_so_the_check_is_what_keeps_it_clear(monke
     times, joints = plain.trajectory.times, plain.trajectory.joints
     checked = st.stretch(sc, times, joints, 0.025)
     assert fp.verify(sc, Trajectory(times, checked.joints)).ok
-    monkeypatch.setattr(st._Checker, "clear", lambda self, i, column: True)
+    monkeypatch.setattr(st._Checker, "clear", lambda self, i, column, a, b: True)
     unchecked = st.stretch(sc, times, joints, 0.025)
     assert unchecked.positioners > checked.positioners
     assert fp.verify(sc, Trajectory(times, unchecked.joints)).n_collisions > 0
@@ -87,3 +87,24 @@ def test_stretch_is_a_setting_of_the_route_planners_only():
     assert fp.plan(sc, "dnf", {"stretch": True}).stats["stretch"]["positioners"] >= 1
     with pytest.raises(SettingsError, match="stretch"):
         fp.plan(sc, "straight", {"stretch": True})
+
+
+def test_the_straight_joint_move_is_offered_too(monkeypatch):
+    sc = hard_scenario("desi", 7, 1)
+    plain = fp.plan(sc, "mpc")
+    times, joints = plain.trajectory.times, plain.trajectory.joints
+    both = st.stretch(sc, times, joints, 0.025)
+    monkeypatch.setattr(st, "STRAIGHTEN", False)
+    own_paths = st.stretch(sc, times, joints, 0.025)
+    assert both.energy_after < own_paths.energy_after < own_paths.energy_before == both.energy_before
+    for done in (both, own_paths):
+        assert fp.verify(sc, Trajectory(times, done.joints)).ok
+    # More positioners move on the straight line from their start to their end, at constant speed.
+    def straight(done):
+        count = 0
+        for i in range(sc.n_positioners):
+            f, g = st._span(done.joints[:, i])
+            count += np.allclose(done.joints[f : g + 1, i], np.linspace(done.joints[f, i], done.joints[g, i], g - f + 1), atol=1e-12)
+        return count
+
+    assert straight(both) > straight(own_paths)

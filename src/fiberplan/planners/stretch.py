@@ -9,12 +9,13 @@ speed, so a positioner that arrives at half the makespan uses at least twice wha
 (the energy gaps of ``docs/results.md``, session 39).
 
 Here every positioner that moves and arrives by the makespan's sample (most energy to save
-first) is offered its own path again, timed anew on the plan's time grid over a longer window:
+first) is offered a new timing on the plan's time grid over a longer window:
 
 - the window from its departure, or from the start, to the makespan's sample, or half or a
-  quarter of the way there from its arrival;
-- along the path either with its own timing scaled (its waits kept, in proportion) or at
-  constant speed (the least energy for the path).
+  quarter of the way there from its arrival, or its own;
+- along its own path with its own timing scaled (its waits kept, in proportion), or along its
+  own path at constant speed, or along the straight joint move from its start to its end at
+  constant speed (:data:`STRAIGHTEN`).
 
 The candidate with the least energy that keeps every neighbour pair at least ``floor`` apart at
 every sample (the smaller of the safety margin and the pair's own smallest clearance in the
@@ -22,8 +23,8 @@ plan), clear between samples (the motion bound, bisected where it is not small a
 clearance: the verifier's test), within the joint speeds, and, where the instrument states a
 motor minimum speed, with no more samples below it than its own, replaces the positioner's
 samples; the next positioner is checked against the moves as they now are, and the positioners
-refused are offered again (:data:`PASSES` rounds). The path, hence the
-hard stops, and each positioner's start, end and the makespan are unchanged; the positioners that
+refused are offered again (:data:`PASSES` rounds). Every start and end and the makespan are
+unchanged (the joint box is convex: a straight move keeps the hard stops); the positioners that
 do not reach their target are left as planned. The result is verified whole by the caller.
 """
 
@@ -41,8 +42,14 @@ WINDOW_DIVISORS = (1, 2, 4)
 """The windows offered end at the makespan's sample, or half or a quarter of the way to it from
 the positioner's arrival; each starts at the start or at its departure."""
 
+STRAIGHTEN = True
+"""Also offered: the straight joint move from the start to the end (the least energy of all)."""
+
 PASSES = 3
 """Rounds over the positioners: one stretched may leave room for another refused before."""
+
+PRECHECK_STRIDE = 8
+"""A candidate's clearances are looked at every this many samples first (a cheap refusal), then at all."""
 
 BISECTIONS = 8
 """Halvings of a step whose motion bound is not small against the clearance at its ends; a piece
@@ -131,32 +138,40 @@ class _Checker:
                 self._floor[(min(i, j), max(i, j))] = min(self.margin, low)
         return np.array([self._floor[(min(i, j), max(i, j))] for j in others.tolist()])
 
-    def clear(self, i: int, column: np.ndarray) -> bool:
-        """Whether ``column`` keeps every pair of ``i`` at its floor at the samples and clear between them."""
+    def clear(self, i: int, column: np.ndarray, a: int, b: int) -> bool:
+        """Whether ``column`` keeps every pair of ``i`` at its floor at the samples and clear between
+        them. Only samples ``a`` to ``b`` are looked at: outside them ``i`` is where it was (at its
+        start before ``a``, at its end after ``b``), against neighbours already checked against that."""
         others = np.array(sorted(self.neighbours[i]), dtype=np.int64)
         if not len(others):
             return True
-        c = self.clearances(i, column, others, self.joints)  # (J, T)
-        if np.any(c < self.floors(i, others)[:, None]):
+        column, joints = column[a : b + 1], self.joints[a : b + 1]
+        floors = self.floors(i, others)[:, None]
+        if b - a > 2 * PRECHECK_STRIDE:  # most refusals show at a few samples: those first
+            few = np.arange(PRECHECK_STRIDE // 2, b - a, PRECHECK_STRIDE)
+            if np.any(self.clearances(i, column[few], others, joints[few]) < floors):
+                return False
+        c = self.clearances(i, column, others, joints)  # (J, b - a + 1)
+        if np.any(c < floors):
             return False
-        move_i = motion_bound(self.rho, np.abs(np.diff(column, axis=0)))  # (T - 1,)
-        move_j = motion_bound(self.rho, np.abs(np.diff(self.joints[:, others], axis=0))).T  # (J, T - 1)
+        move_i = motion_bound(self.rho, np.abs(np.diff(column, axis=0)))  # (b - a,)
+        move_j = motion_bound(self.rho, np.abs(np.diff(joints[:, others], axis=0))).T  # (J, b - a)
         bound = move_i[None, :] + move_j
         c_lo, c_hi = c[:, :-1], c[:, 1:]
         jj, kk = np.nonzero(bound >= np.minimum(c_lo, c_hi))
         if not len(jj):
             return True
-        return self._bisect(i, column, others, jj, kk, c_lo[jj, kk], c_hi[jj, kk], bound[jj, kk])
+        return self._bisect(i, column, joints, others, jj, kk, c_lo[jj, kk], c_hi[jj, kk], bound[jj, kk])
 
-    def _bisect(self, i: int, column: np.ndarray, others: np.ndarray, jj: np.ndarray, kk: np.ndarray, c_lo: np.ndarray,
-                c_hi: np.ndarray, bound: np.ndarray) -> bool:
+    def _bisect(self, i: int, column: np.ndarray, joints: np.ndarray, others: np.ndarray, jj: np.ndarray, kk: np.ndarray,
+                c_lo: np.ndarray, c_hi: np.ndarray, bound: np.ndarray) -> bool:
         s = self.scenario
         lo, hi = np.zeros(len(jj)), np.ones(len(jj))
         for _ in range(BISECTIONS):
             mid = 0.5 * (lo + hi)
             j = others[jj]
             q_i = (1 - mid)[:, None] * column[kk] + mid[:, None] * column[kk + 1]
-            q_j = (1 - mid)[:, None] * self.joints[kk, j] + mid[:, None] * self.joints[kk + 1, j]
+            q_j = (1 - mid)[:, None] * joints[kk, j] + mid[:, None] * joints[kk + 1, j]
             rows_i = np.full(len(j), i)
             c_mid = clearance_between(self.inst, s.base_xy[rows_i], s.orient[rows_i], q_i, s.base_xy[j], s.orient[j],
                                       q_j).min(axis=1)
@@ -202,7 +217,7 @@ def stretch(scenario: Scenario, times: np.ndarray, joints: np.ndarray, margin_mm
     movable = reached | ~scenario.has_target
     movable &= ~scenario.locked
 
-    offers: list[tuple[float, int, list[tuple[float, np.ndarray]]]] = []
+    offers: list[tuple[float, int, list[tuple[float, np.ndarray, int, int]]]] = []
     for i in np.flatnonzero(movable).tolist():
         column = joints[:, i]
         span = _span(column)
@@ -210,20 +225,23 @@ def stretch(scenario: Scenario, times: np.ndarray, joints: np.ndarray, margin_mm
             continue
         f, g = span
         own = _energy(column, dt)
-        windows = [(a, g + (end - g) // d) for d in WINDOW_DIVISORS for a in (0, f)]
+        windows = [(a, g + (end - g) // d) for d in WINDOW_DIVISORS for a in (0, f)] + [(f, g)]
+        line = column.copy()
+        line[f : g + 1] = np.linspace(column[f], column[g], g - f + 1)
         candidates = []
+        ways = [(column, True), (column, False)] + ([(line, True)] if STRAIGHTEN else [])
         for a, b in dict.fromkeys(windows):
             if b < g:
                 continue
-            for even in (True, False):
-                new = _retimed(column, times, f, g, a, b, even)
+            for path, even in ways:
+                new = _retimed(path, times, f, g, a, b, even)
                 if np.any(np.abs(np.diff(new, axis=0)) > top[None, :] * dt[:, None] * (1 + 1e-9)):
                     continue
                 if min_speed is not None and _slow_samples(new, dt, min_speed) > _slow_samples(column, dt, min_speed):
                     continue
                 e = _energy(new, dt)
                 if e < own * (1 - 1e-9):
-                    candidates.append((e, new))
+                    candidates.append((e, new, a, b))
         if candidates:
             candidates.sort(key=lambda c: c[0])
             offers.append((own - candidates[0][0], i, candidates))
@@ -233,8 +251,8 @@ def stretch(scenario: Scenario, times: np.ndarray, joints: np.ndarray, margin_mm
         left = []
         for offer in offers:
             _, i, candidates = offer
-            for _, new in candidates:
-                if checker.clear(i, new):
+            for _, new, a, b in candidates:
+                if checker.clear(i, new, a, b):
                     joints[:, i] = new
                     changed.add(i)
                     break

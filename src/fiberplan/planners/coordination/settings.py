@@ -46,6 +46,7 @@ class RouteSettings:
                                        "direct plan and, where it leaves positioners short or late, a partial retraction of those "
                                        "alone, everyone else going straight (two legs of the planner); kept where shorter (0: never)",
                                        unit="positioners", low=0, high=1_000_000, group="route")
-    stretch: bool = setting(False, "after planning, each positioner's move is spread over more of the makespan, along its own "
-                            "path, where every neighbour pair keeps the safety margin (less energy; the same makespan, starts "
-                            "and ends; the instrument's minimum motor speed kept where the plan kept it)", group="route")
+    stretch: bool = setting(False, "after planning, each positioner's move is spread over more of the makespan, along its "
+                            "own path or the straight joint move, where every neighbour pair keeps the safety margin (less "
+                            "energy; the same makespan, starts and ends; the instrument's minimum motor speed kept where the "
+                            "plan kept it)", group="route")
