@@ -4,7 +4,8 @@
 
 Each scenario is planned twice by the planner (default ``mpc``, its default route), without and
 with ``stretch = true``; both trajectories are verified. Per run the file records both energies,
-makespans and plan walls, the positioners stretched, and the stretch's own time:
+makespans (the stretched one is never later: checked) and plan walls, both runs' motor-limit
+violations where the instrument states limits, the positioners stretched, and the stretch's own time:
 ``planners.stretch.stretch`` timed alone on the plain plan, which is what ``plan`` applies (the
 stretched run's trajectory must equal that stretch, bit for bit; a mismatch is recorded as an
 error).
@@ -50,10 +51,11 @@ def one(instrument: str, n: int, kind: str, seed: int, planner: str) -> dict:
         report = fp.verify(scenario, result.trajectory)
         s = fp.summarize(result, report)
         row[name] = {k: s[k] for k in ("reached", "targets", "makespan_s", "makespan_over_bound", "energy_rad2_s",
-                                       "plan_wall_s", "collisions", "verified_ok", "min_clearance_mm")}
+                                       "plan_wall_s", "collisions", "verified_ok", "min_clearance_mm", "motor_violations")}
     row["positioners_stretched"] = stretched.stats["stretch"]["positioners"]
     row["energy_change"] = row["stretched"]["energy_rad2_s"] / row["plain"]["energy_rad2_s"] - 1.0
     row["same_makespan"] = row["stretched"]["makespan_s"] == row["plain"]["makespan_s"]
+    row["makespan_not_later"] = row["stretched"]["makespan_s"] <= row["plain"]["makespan_s"]
     if not np.array_equal(stretched.trajectory.joints, alone.joints):
         row["error"] = "the stretched run differs from the stretch of the plain run"
     return row
@@ -83,6 +85,7 @@ def main() -> None:
         change = np.array([r["energy_change"] for r in sel])
         print(f"{key[0]} {key[1]} {key[2]}: {len(sel)} runs, energy change median {np.median(change):+.1%} "
               f"(range {change.min():+.1%} to {change.max():+.1%}), same makespan {sum(r['same_makespan'] for r in sel)}, "
+              f"not later {sum(r['makespan_not_later'] for r in sel)}, "
               f"verified {sum(r['stretched']['verified_ok'] for r in sel)}, stretch median {np.median([r['stretch_s'] for r in sel]):.2f} s")
 
 

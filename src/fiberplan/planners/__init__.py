@@ -177,7 +177,11 @@ def _stretched(scenario: Scenario, result: PlanResult, settings: Any, progress: 
 
     if progress is not None:
         progress(1.0, "stretching the moves")
-    done = stretch(scenario, result.trajectory.times, result.trajectory.joints, float(settings.safety_margin_mm))
+    from fiberplan.geometry import default_safety_margin_mm
+
+    margin = getattr(settings, "safety_margin_mm", None)
+    margin = default_safety_margin_mm(scenario.instrument) if margin is None else float(margin)
+    done = stretch(scenario, result.trajectory.times, result.trajectory.joints, margin)
     stats = dict(result.stats or {}) | {"stretch": {"positioners": done.positioners, "energy_before_rad2_s": done.energy_before,
                                                     "energy_after_rad2_s": done.energy_after}}
     return dataclasses.replace(result, trajectory=Trajectory(result.trajectory.times, done.joints), stats=stats,

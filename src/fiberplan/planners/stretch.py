@@ -18,14 +18,16 @@ first) is offered a new timing on the plan's time grid over a longer window:
   constant speed (:data:`STRAIGHTEN`).
 
 The candidate with the least energy that keeps every neighbour pair at least ``floor`` apart at
-every sample (the smaller of the safety margin and the pair's own smallest clearance in the
-plan), clear between samples (the motion bound, bisected where it is not small against the
-clearance: the verifier's test), within the joint speeds, and, where the instrument states a
-motor minimum speed, with no more samples below it than its own, replaces the positioner's
-samples; the next positioner is checked against the moves as they now are, and the positioners
-refused are offered again (:data:`PASSES` rounds). Every start and end and the makespan are
-unchanged (the joint box is convex: a straight move keeps the hard stops); the positioners that
-do not reach their target are left as planned. The result is verified whole by the caller.
+every sample (the smaller of the safety margin and the pair's own smallest clearance at the
+plan's samples), proven clear between samples (the motion bound, bisected where it is not small
+against the clearance), within the joint speeds, and, where the instrument states motor limits,
+with no rule broken more often than by its own samples (:func:`motor_counts`), replaces the
+positioner's samples; the next positioner is checked against the moves as they now are, and the
+positioners refused are offered again (:data:`PASSES` rounds). Every start and end is unchanged
+(the joint box is convex: a straight move keeps the hard stops), and the makespan is never later
+(it can be a sample earlier: a slower last approach enters the tolerance disc sooner); the
+positioners that do not reach their target are left as planned. The result is verified whole by
+the caller.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fiberplan.geometry import clearance_between, motion_bound, point_extents
+from fiberplan.instrument import MotorLimits
 from fiberplan.metrics import arrival_times, reached_mask
 from fiberplan.scenario import Scenario
 
@@ -189,10 +192,32 @@ class _Checker:
         return False
 
 
-def _slow_samples(column: np.ndarray, dt: np.ndarray, min_speed: np.ndarray) -> int:
-    """Moving samples of ``column`` below the motor minimum speed ``(2,)``."""
-    speed = np.abs(np.diff(column, axis=0)) / dt[:, None]
-    return int(np.sum((speed > 0.0) & (speed < min_speed[None, :] * (1 - 1e-9))))
+def motor_counts(column: np.ndarray, dt: np.ndarray, motors: MotorLimits) -> np.ndarray:
+    """How often one positioner's samples ``(T, 2)`` break each motor rule the instrument states,
+    per joint: ``(2, 5)`` counts of moving steps below the minimum speed, reversals without a stop,
+    speed changes above the limit, and constant-speed runs and starts from rest beyond the limits
+    (the verifier's rules, :func:`fiberplan.verify._check_motors`, counted rather than reported at
+    their worst)."""
+    counts = np.zeros((2, 5), dtype=np.int64)
+    tol = 1e-9
+    v = np.diff(column, axis=0) / dt[:, None]  # (T - 1, 2)
+    moving = np.abs(v) > tol
+    both = moving[:-1] & moving[1:]
+    jump = np.abs(v[1:] - v[:-1])
+    if motors.min_speed_rad_s is not None:
+        counts[:, 0] = np.sum(moving & (np.abs(v) < np.asarray(motors.min_speed_rad_s)[None, :] * (1 - 1e-9)), axis=0)
+    if motors.stop_before_reversing:
+        counts[:, 1] = np.sum(both & (v[:-1] * v[1:] < 0), axis=0)
+    if motors.max_speed_change is not None:
+        ratio = jump / np.maximum(np.abs(v[:-1]), tol)
+        counts[:, 2] = np.sum(both & (v[:-1] * v[1:] > 0) & (ratio > motors.max_speed_change * (1 + 1e-9)), axis=0)
+    if motors.max_segments is not None:
+        runs = np.sum(moving & np.vstack([np.ones((1, 2), dtype=bool), ~moving[:-1] | (jump > tol)]), axis=0)
+        counts[:, 3] = np.maximum(runs - motors.max_segments, 0)
+    if motors.max_start_stops is not None:
+        starts = np.sum(moving & np.vstack([np.ones((1, 2), dtype=bool), ~moving[:-1]]), axis=0)
+        counts[:, 4] = np.maximum(starts - motors.max_start_stops, 0)
+    return counts
 
 
 def stretch(scenario: Scenario, times: np.ndarray, joints: np.ndarray, margin_mm: float) -> Stretched:
@@ -212,7 +237,7 @@ def stretch(scenario: Scenario, times: np.ndarray, joints: np.ndarray, margin_mm
     end = int(np.searchsorted(times, np.nanmax(arrive[reached])))  # the makespan's sample
     inst = scenario.instrument
     top = np.asarray(inst.speeds_rad_s, dtype=float)
-    min_speed = np.asarray(inst.motors.min_speed_rad_s, dtype=float) if inst.motors.min_speed_rad_s is not None else None
+    motors = inst.motors if inst.motors.stated else None
     checker = _Checker(scenario, joints, margin_mm)
     movable = reached | ~scenario.has_target
     movable &= ~scenario.locked
@@ -225,6 +250,7 @@ def stretch(scenario: Scenario, times: np.ndarray, joints: np.ndarray, margin_mm
             continue
         f, g = span
         own = _energy(column, dt)
+        own_motors = motor_counts(column, dt, motors) if motors is not None else None
         windows = [(a, g + (end - g) // d) for d in WINDOW_DIVISORS for a in (0, f)] + [(f, g)]
         line = column.copy()
         line[f : g + 1] = np.linspace(column[f], column[g], g - f + 1)
@@ -237,7 +263,7 @@ def stretch(scenario: Scenario, times: np.ndarray, joints: np.ndarray, margin_mm
                 new = _retimed(path, times, f, g, a, b, even)
                 if np.any(np.abs(np.diff(new, axis=0)) > top[None, :] * dt[:, None] * (1 + 1e-9)):
                     continue
-                if min_speed is not None and _slow_samples(new, dt, min_speed) > _slow_samples(column, dt, min_speed):
+                if motors is not None and np.any(motor_counts(new, dt, motors) > own_motors):
                     continue
                 e = _energy(new, dt)
                 if e < own * (1 - 1e-9):

@@ -47,6 +47,6 @@ class RouteSettings:
                                        "alone, everyone else going straight (two legs of the planner); kept where shorter (0: never)",
                                        unit="positioners", low=0, high=1_000_000, group="route")
     stretch: bool = setting(False, "after planning, each positioner's move is spread over more of the makespan, along its "
-                            "own path or the straight joint move, where every neighbour pair keeps the safety margin (less "
-                            "energy; the same makespan, starts and ends; the instrument's minimum motor speed kept where the "
-                            "plan kept it)", group="route")
+                            "own path or the straight joint move, where every neighbour pair keeps the safety margin at the "
+                            "samples (less energy; the same starts and ends, the makespan never later; no motor rule broken "
+                            "more often than by the plan)", group="route")
