@@ -372,17 +372,22 @@ def clearance_between(
     The same quantity as :func:`pair_clearance`, for explicit configurations of each pair
     (the verifier uses it to probe instants between samples).
     """
-    _, _, _, combos, combo_radii = capsule_tables(instrument)
     m = len(joints_i)
     start, end = capsule_segments(  # both sides in one call: these arrays are small
         instrument, np.concatenate([base_i, base_j]), np.concatenate([orient_i, orient_j]), np.concatenate([joints_i, joints_j])
     )
-    start_i, end_i, start_j, end_j = start[:m], end[:m], start[m:], end[m:]
-    ca, cb = combos[:, 0], combos[:, 1]
+    return segment_clearances(instrument, start[:m], end[:m], start[m:], end[m:])
+
+
+def segment_clearances(instrument: Instrument, start_i: np.ndarray, end_i: np.ndarray, start_j: np.ndarray, end_j: np.ndarray) -> np.ndarray:
+    """:func:`clearance_between` from the capsule segments of row-matched positioners
+    (:func:`capsule_segments`, ``(M, C, 2)`` each): for callers that keep the segments."""
+    _, _, _, combos, combo_radii = capsule_tables(instrument)
     if instrument.polygons:
         from fiberplan import zones
 
         return zones.clearances(instrument, start_i, end_i, start_j, end_j)[0]
+    ca, cb = combos[:, 0], combos[:, 1]
     dist, _, _ = segment_distance(start_i[:, ca], end_i[:, ca], start_j[:, cb], end_j[:, cb])
     return dist - combo_radii
 

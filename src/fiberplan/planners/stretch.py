@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fiberplan.geometry import clearance_between, motion_bound, point_extents
+from fiberplan.geometry import capsule_segments, clearance_between, motion_bound, point_extents, segment_clearances
 from fiberplan.instrument import MotorLimits
 from fiberplan.metrics import arrival_times, reached_mask
 from fiberplan.scenario import Scenario
@@ -120,23 +120,37 @@ class _Checker:
         self.margin = margin_mm
         self._floor: dict[tuple[int, int], float] = {}
         self._original = joints.copy()
+        self._segments: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # as they now move
+        self._planned: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # as planned
+        self._candidate: tuple[int, int, int, np.ndarray, np.ndarray] = (-1, 0, 0, np.empty(0), np.empty(0))
+        self._candidate_column: np.ndarray | None = None
 
-    def clearances(self, i: int, column: np.ndarray, others: np.ndarray, joints: np.ndarray) -> np.ndarray:
-        """``(J, T)`` smallest clearances of ``i`` at ``column`` to ``others`` at ``joints``."""
-        s = self.scenario
-        t = len(column)
-        rows_j = np.repeat(others, t)
-        q_i = np.tile(column, (len(others), 1))
-        q_j = joints[:, others].transpose(1, 0, 2).reshape(-1, 2)
-        c = clearance_between(self.inst, s.base_xy[np.full(len(rows_j), i)], s.orient[np.full(len(rows_j), i)], q_i,
-                              s.base_xy[rows_j], s.orient[rows_j], q_j)
-        return c.min(axis=1).reshape(len(others), t)
+    def segments(self, j: int, original: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Capsule segments ``(T, C, 2)`` (start, end) of positioner ``j`` as it now moves (or as
+        planned), kept until it changes."""
+        cache, joints = (self._planned, self._original) if original else (self._segments, self.joints)
+        seg = cache.get(j)
+        if seg is None:
+            s = self.scenario
+            start, end = capsule_segments(self.inst, s.base_xy[j : j + 1], s.orient[j : j + 1], joints[:, j : j + 1])
+            seg = cache[j] = (start[:, 0], end[:, 0])
+        return seg
+
+    def clearances(self, seg_i: tuple[np.ndarray, np.ndarray], others: np.ndarray, samples: np.ndarray,
+                   original: bool = False) -> np.ndarray:
+        """``(J, W)`` smallest clearances of a positioner with segments ``seg_i`` (``(W, C, 2)``) to
+        ``others`` as they now move (or as planned), at ``samples`` (``(W,)``)."""
+        start_j = np.concatenate([self.segments(j, original)[0][samples] for j in others.tolist()])
+        end_j = np.concatenate([self.segments(j, original)[1][samples] for j in others.tolist()])
+        reps = (len(others), 1, 1)
+        c = segment_clearances(self.inst, np.tile(seg_i[0], reps), np.tile(seg_i[1], reps), start_j, end_j)
+        return c.min(axis=1).reshape(len(others), len(samples))
 
     def floors(self, i: int, others: np.ndarray) -> np.ndarray:
         """The smaller of the margin and each pair's smallest clearance at the plan's samples."""
         missing = [j for j in others.tolist() if (min(i, j), max(i, j)) not in self._floor]
         if missing:
-            c = self.clearances(i, self._original[:, i], np.array(missing), self._original)
+            c = self.clearances(self.segments(i, original=True), np.array(missing), np.arange(len(self._original)), original=True)
             for j, low in zip(missing, c.min(axis=1).tolist(), strict=True):
                 self._floor[(min(i, j), max(i, j))] = min(self.margin, low)
         return np.array([self._floor[(min(i, j), max(i, j))] for j in others.tolist()])
@@ -146,15 +160,20 @@ class _Checker:
         them. Only samples ``a`` to ``b`` are looked at: outside them ``i`` is where it was (at its
         start before ``a``, at its end after ``b``), against neighbours already checked against that."""
         others = np.array(sorted(self.neighbours[i]), dtype=np.int64)
+        s = self.scenario
+        start, end = capsule_segments(self.inst, s.base_xy[i : i + 1], s.orient[i : i + 1], column[a : b + 1, None])
+        self._candidate = (i, a, b, start[:, 0], end[:, 0])
+        self._candidate_column = column
         if not len(others):
             return True
         column, joints = column[a : b + 1], self.joints[a : b + 1]
+        seg_i = (start[:, 0], end[:, 0])
         floors = self.floors(i, others)[:, None]
         if b - a > 2 * PRECHECK_STRIDE:  # most refusals show at a few samples: those first
             few = np.arange(PRECHECK_STRIDE // 2, b - a, PRECHECK_STRIDE)
-            if np.any(self.clearances(i, column[few], others, joints[few]) < floors):
+            if np.any(self.clearances((seg_i[0][few], seg_i[1][few]), others, a + few) < floors):
                 return False
-        c = self.clearances(i, column, others, joints)  # (J, b - a + 1)
+        c = self.clearances(seg_i, others, np.arange(a, b + 1))  # (J, b - a + 1)
         if np.any(c < floors):
             return False
         move_i = motion_bound(self.rho, np.abs(np.diff(column, axis=0)))  # (b - a,)
@@ -165,6 +184,19 @@ class _Checker:
         if not len(jj):
             return True
         return self._bisect(i, column, joints, others, jj, kk, c_lo[jj, kk], c_hi[jj, kk], bound[jj, kk])
+
+    def accept(self, i: int, column: np.ndarray, a: int, b: int) -> None:
+        """Positioner ``i`` moves as ``column`` (changed from its samples ``a`` to ``b`` only)."""
+        if self._candidate[:3] == (i, a, b) and self._candidate_column is column:  # just checked: its segments at hand
+            start, end = self._candidate[3], self._candidate[4]
+        else:
+            s = self.scenario
+            start, end = (x[:, 0] for x in capsule_segments(self.inst, s.base_xy[i : i + 1], s.orient[i : i + 1], column[a : b + 1, None]))
+        old_start, old_end = self.segments(i)
+        new_start, new_end = old_start.copy(), old_end.copy()  # (the planned ones may be the same arrays)
+        new_start[a : b + 1], new_end[a : b + 1] = start, end
+        self.joints[:, i] = column
+        self._segments[i] = (new_start, new_end)
 
     def _bisect(self, i: int, column: np.ndarray, joints: np.ndarray, others: np.ndarray, jj: np.ndarray, kk: np.ndarray,
                 c_lo: np.ndarray, c_hi: np.ndarray, bound: np.ndarray) -> bool:
@@ -279,7 +311,7 @@ def stretch(scenario: Scenario, times: np.ndarray, joints: np.ndarray, margin_mm
             _, i, candidates = offer
             for _, new, a, b in candidates:
                 if checker.clear(i, new, a, b):
-                    joints[:, i] = new
+                    checker.accept(i, new, a, b)
                     changed.add(i)
                     break
             else:
