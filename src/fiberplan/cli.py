@@ -285,13 +285,21 @@ def plan(
         save_snapshot(result, picture, default_snapshot_time(result, times))
         summary["picture"] = str(picture)
     summary["warnings"] = list(result.warnings)
+    stretched = (result.stats or {}).get("stretch")
+    if stretched is not None:  # --set stretch=true: what it did
+        summary["stretch"] = stretched
     if as_json:
         click.echo(json.dumps(_json_ready(summary)))
     else:
         click.echo(f"fiberplan plan: {scenario.name or scenario.kind}")
         keys = (*_SUMMARY_KEYS, "instrument_source", *(k for k in ("out", "picture") if k in summary))
-        _print_table(summary | {"time_split_s": ", ".join(f"{phase} {seconds:.2f} s" for phase, seconds in summary["time_split_s"].items())},
-                     (*keys, "time_split_s"))
+        extra = {"time_split_s": ", ".join(f"{phase} {seconds:.2f} s" for phase, seconds in summary["time_split_s"].items())}
+        if stretched is not None:
+            before, after = stretched["energy_before_rad2_s"], stretched["energy_after_rad2_s"]
+            change = f" ({after / before - 1:+.1%})" if before > 0 else ""
+            extra["stretch"] = f"{stretched['positioners']} positioner(s) stretched, energy {before:.4g} -> {after:.4g} rad^2/s{change}"
+            keys = (*keys, "stretch")
+        _print_table(summary | extra, (*keys, "time_split_s"))
         _print_not_reached(summary)
     if scenario.infeasible:
         _warn([f"{len(scenario.infeasible)} target(s) cannot be reached at all and were not planned (they hold): "
