@@ -253,8 +253,27 @@ def motor_counts(column: np.ndarray, dt: np.ndarray, motors: MotorLimits) -> np.
 
 
 def stretch(scenario: Scenario, times: np.ndarray, joints: np.ndarray, margin_mm: float) -> Stretched:
-    """``joints`` (``(T, N, 2)`` on ``times``) with each positioner's move spread out where clear
-    (see the module docstring); the input is not modified."""
+    """Each positioner's move spread over more of the makespan where its neighbours allow.
+
+    What ``plan(..., {"stretch": True})`` applies after the mpc's or the dnf's plan (the setting
+    ``stretch``; ``formulations/coordination.md``, Stretching the moves). Each positioner that
+    arrives before the makespan is offered its own path timed over a longer window (scaled, or at
+    constant speed) or the straight joint move at constant speed; the least-energy offer that
+    keeps every neighbour pair at least its floor at the samples (the smaller of ``margin_mm`` and
+    the pair's closest approach in the plan), is proven clear between samples and breaks no
+    stated motor rule more often than the plan did, is kept. Starts and ends are unchanged, the
+    makespan never later; verify the result whole.
+
+    Args:
+        scenario: the planned scenario.
+        times: ``(T,)`` the plan's sample times (s).
+        joints: ``(T, N, 2)`` the plan's joint angles (rad); not modified.
+        margin_mm: the planner's safety margin (mm).
+
+    Returns:
+        The stretched joints on the same times, how many positioners changed, and the energy
+        (:func:`fiberplan.metrics.energy`) before and after.
+    """
     times = np.asarray(times, dtype=float)
     joints = np.array(joints, dtype=float, copy=True)
     dt = np.diff(times)
