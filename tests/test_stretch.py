@@ -168,3 +168,12 @@ def test_the_command_line_says_what_the_stretch_did(tmp_path):
     assert fp.load_result(out).settings["stretch"] is True
     plain = CliRunner().invoke(cli, ["plan", "--instrument", "desi", "-n", "7", "--seed", "1"])
     assert "stretched" not in plain.output
+
+
+def test_the_stretched_plan_makes_motor_profiles_that_verify():
+    sc = hard_scenario("moons", 7, 2)  # MOONS' motor rules stated
+    plain, stretched = fp.plan(sc, "mpc"), fp.plan(sc, "mpc", {"stretch": True})
+    assert stretched.stats["stretch"]["positioners"] >= 1
+    before, after = fp.discretise(plain), fp.discretise(stretched)
+    assert after.report.ok and not after.report.motor_violations
+    assert after.summary()["makespan_after_s"] <= before.summary()["makespan_after_s"]
