@@ -293,7 +293,15 @@ def stretch(scenario: Scenario, times: np.ndarray, joints: np.ndarray, margin_mm
     movable = reached | ~scenario.has_target
     movable &= ~scenario.locked
 
-    offers: list[tuple[float, int, list[tuple[float, np.ndarray, int, int]]]] = []
+    def offered(column: np.ndarray, f: int, g: int, a: int, b: int, way: int) -> np.ndarray:
+        """The samples of one offer (made again when checked: only its energy is kept meanwhile)."""
+        if way == 2:  # the straight joint move
+            column = column.copy()
+            column[f : g + 1] = np.linspace(column[f], column[g], g - f + 1)
+        return _retimed(column, times, f, g, a, b, even=way != 1)
+
+    ways = (0, 1, 2) if STRAIGHTEN else (0, 1)  # own path at constant speed, own timing scaled, straight
+    offers: list[tuple[float, int, int, int, list[tuple[float, int, int, int]]]] = []
     for i in np.flatnonzero(movable).tolist():
         column = joints[:, i]
         span = _span(column)
@@ -303,32 +311,30 @@ def stretch(scenario: Scenario, times: np.ndarray, joints: np.ndarray, margin_mm
         own = _energy(column, dt)
         own_motors = motor_counts(column, dt, motors) if motors is not None else None
         windows = [(a, g + (end - g) // d) for d in WINDOW_DIVISORS for a in (0, f)] + [(f, g)]
-        line = column.copy()
-        line[f : g + 1] = np.linspace(column[f], column[g], g - f + 1)
         candidates = []
-        ways = [(column, True), (column, False)] + ([(line, True)] if STRAIGHTEN else [])
         for a, b in dict.fromkeys(windows):
             if b < g:
                 continue
-            for path, even in ways:
-                new = _retimed(path, times, f, g, a, b, even)
+            for way in ways:
+                new = offered(column, f, g, a, b, way)
                 if np.any(np.abs(np.diff(new, axis=0)) > top[None, :] * dt[:, None] * (1 + 1e-9)):
                     continue
                 if motors is not None and np.any(motor_counts(new, dt, motors) > own_motors):
                     continue
                 e = _energy(new, dt)
                 if e < own * (1 - 1e-9):
-                    candidates.append((e, new, a, b))
+                    candidates.append((e, a, b, way))
         if candidates:
             candidates.sort(key=lambda c: c[0])
-            offers.append((own - candidates[0][0], i, candidates))
+            offers.append((own - candidates[0][0], i, f, g, candidates))
     offers.sort(key=lambda o: (-o[0], o[1]))
     changed: set[int] = set()
     for _ in range(PASSES):
         left = []
         for offer in offers:
-            _, i, candidates = offer
-            for _, new, a, b in candidates:
+            _, i, f, g, candidates = offer
+            for _, a, b, way in candidates:
+                new = offered(joints[:, i], f, g, a, b, way)  # (i's samples are still its own: it changes once)
                 if checker.clear(i, new, a, b):
                     checker.accept(i, new, a, b)
                     changed.add(i)
