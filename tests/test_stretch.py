@@ -177,3 +177,47 @@ def test_the_stretched_plan_makes_motor_profiles_that_verify():
     before, after = fp.discretise(plain), fp.discretise(stretched)
     assert after.report.ok and not after.report.motor_violations
     assert after.summary()["makespan_after_s"] <= before.summary()["makespan_after_s"]
+
+
+def test_locked_held_and_unreached_positioners_keep_their_samples_or_their_ends():
+    from fiberplan.scenario import scenario_from_dict
+
+    data = fp.make_scenario("desi", 19, "random", 5).to_dict()
+    rows = data["positioners"]
+    rows[3]["locked"], rows[3]["target"] = True, None  # locked where it starts
+    rows[7]["target"] = None  # held: may yield, ends where it started
+    a, b = rows[0], rows[1]  # targets that collide: infeasible, planned as held
+    a["target"] = {"x_mm": (a["x_mm"] + b["x_mm"]) / 2, "y_mm": (a["y_mm"] + b["y_mm"]) / 2}
+    b["target"] = {"x_mm": a["target"]["x_mm"] + 0.05, "y_mm": a["target"]["y_mm"]}
+    sc = scenario_from_dict(data)
+    assert {0, 1} <= set(sc.infeasible)
+    plain, result = fp.plan(sc, "mpc"), fp.plan(sc, "mpc", {"stretch": True})
+    assert result.stats["stretch"]["positioners"] >= 1
+    assert fp.verify(sc, result.trajectory).ok
+    joints = result.trajectory.joints
+    assert np.all(joints[:, 3] == sc.start[3])
+    for k in (0, 1, 7):
+        np.testing.assert_array_equal(joints[-1, k], plain.trajectory.joints[-1, k])
+    np.testing.assert_array_equal(np.asarray(result.outcome), np.asarray(plain.outcome))
+
+
+def test_a_positioner_left_short_keeps_its_samples_and_one_without_a_target_its_start():
+    from fiberplan.scenario import scenario_from_dict
+
+    data = fp.make_scenario("desi", 7, "random", 0).to_dict()
+    data["positioners"][5]["target"] = None
+    sc = scenario_from_dict(data)
+    times = np.linspace(0.0, 2.0, 201)
+    joints = np.repeat(sc.start[None], 201, axis=0)
+    joints[:, 4] = np.linspace(sc.start[4], sc.target[4], 201)  # reached at the end: the makespan
+    joints[:51, 1] = np.linspace(sc.start[1], 0.5 * (sc.start[1] + sc.target[1]), 51)  # half-way, then stops: short
+    joints[51:, 1] = joints[50, 1]
+    out = sc.start[5] + np.array([0.2, 0.0])  # no target: out and back early
+    joints[:41, 5] = np.concatenate([np.linspace(sc.start[5], out, 21), np.linspace(out, sc.start[5], 21)[1:]])
+    assert not reached_mask(sc, Trajectory(times, joints))[1]
+    done = st.stretch(sc, times, joints, 0.0251)
+    np.testing.assert_array_equal(done.joints[:, 1], joints[:, 1])  # short: as planned
+    for i in (0, 2, 3, 6):  # with a target, never moved: still
+        np.testing.assert_array_equal(done.joints[:, i], joints[:, i])
+    np.testing.assert_array_equal(done.joints[-1, 5], sc.start[5])  # back where it started
+    assert st._span(done.joints[:, 5]) != st._span(joints[:, 5])  # its round trip spread out (or, straight, dropped)
