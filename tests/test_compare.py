@@ -135,6 +135,13 @@ def test_energy_gap_without_the_makespan_reference() -> None:
     # Warm-started from the mpc's own trajectory at its makespan: the reference needs no more energy.
     assert row["energy_gap_to_central"] >= -1e-6
     assert result.parameters["energy_gap"] is True
+    # The table shows the energy gap it solved (it showed only the energy before), and only then.
+    from fiberplan.studies.compare import format_table
+
+    table = format_table(result)
+    assert "e gap" in table and f"{row['energy_gap_to_central']:+.1%}" in table
+    plain = run_compare("desi", 7, ["mpc"], [1], settings=FAST_CENTRAL)
+    assert "e gap" not in format_table(plain)
 
 
 def test_planners_with_the_same_trajectory_share_one_energy_solve(monkeypatch: pytest.MonkeyPatch) -> None:

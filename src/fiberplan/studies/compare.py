@@ -195,11 +195,13 @@ def write_parquet(rows: Sequence[Mapping[str, Any]], path: str | Path) -> Path:
 
 
 def format_table(result: CompareResult) -> str:
-    """Human-readable rows and aggregates."""
+    """Human-readable rows and aggregates (with the energy gaps where they were solved)."""
     lines = []
+    energy = bool(result.parameters.get("energy_gap")) or any(
+        isinstance(r.get("energy_gap_to_central"), float) and math.isfinite(r["energy_gap_to_central"]) for r in result.rows)
     header = (
         f"{'planner':<9} {'seed':>4} {'success':>7} {'coll':>4} {'makespan':>9} {'/bound':>7} {'gap':>7} "
-        f"{'path mm':>8} {'energy':>8} {'wall s':>7}  note"
+        f"{'path mm':>8} {'energy':>8} " + (f"{'e gap':>7} " if energy else "") + f"{'wall s':>7}  note"
     )
     lines.append(header)
 
@@ -208,17 +210,21 @@ def format_table(result: CompareResult) -> str:
 
     for r in result.rows:
         note = r["error"][:60] if r["error"] else (r["solver_status"] if r["planner"] == CENTRAL else "")
+        e_gap = f"{fmt(r.get('energy_gap_to_central'), '+.1%'):>7} " if energy else ""
         lines.append(
             f"{r['planner']:<9} {r['seed']!s:>4} {fmt(r['success_rate'], '.3f'):>7} {fmt(r['collisions'], '.0f'):>4} "
             f"{fmt(r['makespan_s'], '.3f'):>9} {fmt(r['makespan_over_bound'], '.3f'):>7} {fmt(r['gap_to_central'], '+.1%'):>7} "
-            f"{fmt(r['path_length_mm_mean'], '.2f'):>8} {fmt(r['energy_rad2_s'], '.2f'):>8} {fmt(r['plan_wall_s'], '.2f'):>7}  {note}"
+            f"{fmt(r['path_length_mm_mean'], '.2f'):>8} {fmt(r['energy_rad2_s'], '.2f'):>8} {e_gap}{fmt(r['plan_wall_s'], '.2f'):>7}  {note}"
         )
     lines.append("")
-    lines.append(f"{'planner':<9} {'runs':>4} {'clean':>6} {'coll':>5} {'gap med':>8} {'gap p90':>8} {'n gap':>5} {'wall med':>8} {'wall max':>8}")
+    lines.append(f"{'planner':<9} {'runs':>4} {'clean':>6} {'coll':>5} {'gap med':>8} {'gap p90':>8} {'n gap':>5} "
+                 + (f"{'e gap med':>9} {'n e':>4} " if energy else "") + f"{'wall med':>8} {'wall max':>8}")
     for name, a in result.aggregates.items():
+        e_agg = a.get("energy_gap_to_central") or {"median": None, "n": 0}
+        e_cols = f"{fmt(e_agg['median'], '+.1%'):>9} {e_agg['n']:>4} " if energy else ""
         lines.append(
             f"{name:<9} {a['runs']:>4} {fmt(a['clean_fraction'], '.2f'):>6} {a['collisions_total']:>5} "
             f"{fmt(a['gap_to_central']['median'], '+.1%'):>8} {fmt(a['gap_to_central']['p90'], '+.1%'):>8} {a['gap_to_central']['n']:>5} "
-            f"{fmt(a['plan_wall_s']['median'], '.2f'):>8} {fmt(a['plan_wall_s']['max'], '.2f'):>8}"
+            f"{e_cols}{fmt(a['plan_wall_s']['median'], '.2f'):>8} {fmt(a['plan_wall_s']['max'], '.2f'):>8}"
         )
     return "\n".join(lines)
