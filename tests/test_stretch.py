@@ -68,11 +68,15 @@ def test_the_stretched_plan_verifies_with_less_energy_and_no_later_makespan(inst
     assert np.all(_sample_clearances(sc, result.trajectory.joints) >= floors[None, :])
 
 
-def test_unchecked_stretching_collides_so_the_check_is_what_keeps_it_clear(monkeypatch):
-    sc = hard_scenario("desi", 7, 0)
+def _planned(instrument, n, seed):
+    """A hard group, its mpc plan, the plan's times and joints and the mpc's margin."""
+    sc = hard_scenario(instrument, n, seed)
     plain = fp.plan(sc, "mpc")
-    times, joints = plain.trajectory.times, plain.trajectory.joints
-    margin = plain.settings["safety_margin_mm"]
+    return sc, plain, plain.trajectory.times, plain.trajectory.joints, plain.settings["safety_margin_mm"]
+
+
+def test_unchecked_stretching_collides_so_the_check_is_what_keeps_it_clear(monkeypatch):
+    sc, plain, times, joints, margin = _planned("desi", 7, 0)
     checked = st.stretch(sc, times, joints, margin)
     assert fp.verify(sc, Trajectory(times, checked.joints)).ok
     monkeypatch.setattr(st._Checker, "clear", lambda self, i, column, a, b: True)
@@ -125,10 +129,7 @@ def test_stretch_is_a_setting_of_the_route_planners_only():
 
 
 def test_the_straight_joint_move_is_offered_too(monkeypatch):
-    sc = hard_scenario("desi", 7, 1)
-    plain = fp.plan(sc, "mpc")
-    times, joints = plain.trajectory.times, plain.trajectory.joints
-    margin = plain.settings["safety_margin_mm"]
+    sc, _, times, joints, margin = _planned("desi", 7, 1)
     both = st.stretch(sc, times, joints, margin)
     monkeypatch.setattr(st, "STRAIGHTEN", False)
     own_paths = st.stretch(sc, times, joints, margin)

@@ -35,7 +35,7 @@ import numpy as np
 
 from fiberplan.errors import TrajectoryError
 from fiberplan.geometry import capsule_coordinates, clearance_between, motion_bound, point_extents
-from fiberplan.instrument import Instrument
+from fiberplan.instrument import Instrument, MotorLimits
 from fiberplan.instrument_io import load_instrument, preset_names
 from fiberplan.layout import neighbour_pairs
 from fiberplan.scenario import Scenario
@@ -490,23 +490,9 @@ def _check_motors(inst: Instrument, ids: np.ndarray, trajectory: Trajectory, rep
     if not motors.stated or len(times) < 2:
         return
     dt = np.diff(times)[:, None]
-    tol = 1e-9
     for axis, joint_name in enumerate(("alpha", "beta")):
         v = np.diff(trajectory.joints[:, :, axis], axis=0) / dt  # (T-1, N)
-        moving = np.abs(v) > tol
-        found: list[tuple[str, np.ndarray, np.ndarray, float, bool]] = []  # kind, mask (K, N), value (K, N), limit, worst is max
-        if motors.min_speed_rad_s is not None:
-            low = motors.min_speed_rad_s[axis]
-            found.append(("min_speed", moving & (np.abs(v) < low * (1 - 1e-9)), np.abs(v), low, False))
-        both = moving[:-1] & moving[1:]
-        jump = np.abs(v[1:] - v[:-1])
-        if motors.stop_before_reversing:
-            found.append(("reversal", both & (v[:-1] * v[1:] < 0), jump, 0.0, True))
-        if motors.max_speed_change is not None:
-            ratio = jump / np.maximum(np.abs(v[:-1]), tol)
-            found.append(("speed_change", both & (v[:-1] * v[1:] > 0) & (ratio > motors.max_speed_change * (1 + 1e-9)),
-                          ratio, motors.max_speed_change, True))
-        for kind, mask, value, limit, worst_is_max in found:
+        for kind, mask, value, limit, worst_is_max in motor_breaches(motors, v, axis):
             offset = 0 if kind == "min_speed" else 1  # a change is at the start of the second command
             for i in np.flatnonzero(mask.any(axis=0)):
                 first = int(np.argmax(mask[:, i]))
@@ -515,20 +501,54 @@ def _check_motors(inst: Instrument, ids: np.ndarray, trajectory: Trajectory, rep
                 report.motor_violations.append(LimitViolation(
                     int(ids[i]), joint_name, float(times[worst + offset]), float(value[worst, i]), float(limit), kind,
                     float(times[first + offset])))
+        from_rest, starts = motor_runs(v)
         if motors.max_start_stops is not None:
-            from_rest = moving & np.vstack([np.ones((1, v.shape[1]), dtype=bool), ~moving[:-1]])
             cycles = from_rest.sum(axis=0)
             for i in np.flatnonzero(cycles > motors.max_start_stops):
                 k = int(np.flatnonzero(from_rest[:, i])[motors.max_start_stops])
                 report.motor_violations.append(LimitViolation(
                     int(ids[i]), joint_name, float(times[-1]), float(cycles[i]), float(motors.max_start_stops), "start_stops", float(times[k])))
         if motors.max_segments is not None:
-            starts = moving & np.vstack([np.ones((1, v.shape[1]), dtype=bool), ~moving[:-1] | (np.abs(v[1:] - v[:-1]) > tol)])
             count = starts.sum(axis=0)
             for i in np.flatnonzero(count > motors.max_segments):
                 k = int(np.flatnonzero(starts[:, i])[motors.max_segments])
                 report.motor_violations.append(LimitViolation(
                     int(ids[i]), joint_name, float(times[-1]), float(count[i]), float(motors.max_segments), "segments", float(times[k])))
+
+
+_MOVING = 1e-9  # rad/s: a joint faster than this is moving
+
+
+def motor_breaches(motors: MotorLimits, v: np.ndarray, axis: int) -> list[tuple[str, np.ndarray, np.ndarray, float, bool]]:
+    """The commands of one joint (``axis``) that break a stated motor rule, from its speeds ``v``
+    (``(K, N)`` rad/s, one constant-speed command per step): per rule ``(kind, mask, value, limit,
+    worst is the largest)``, the masks ``(K, N)`` for ``min_speed`` and ``(K - 1, N)`` (the second
+    of two commands) for ``reversal`` and ``speed_change`` (see :func:`_check_motors`)."""
+    moving = np.abs(v) > _MOVING
+    found: list[tuple[str, np.ndarray, np.ndarray, float, bool]] = []
+    if motors.min_speed_rad_s is not None:
+        low = motors.min_speed_rad_s[axis]
+        found.append(("min_speed", moving & (np.abs(v) < low * (1 - 1e-9)), np.abs(v), low, False))
+    both = moving[:-1] & moving[1:]
+    jump = np.abs(v[1:] - v[:-1])
+    if motors.stop_before_reversing:
+        found.append(("reversal", both & (v[:-1] * v[1:] < 0), jump, 0.0, True))
+    if motors.max_speed_change is not None:
+        ratio = jump / np.maximum(np.abs(v[:-1]), _MOVING)
+        found.append(("speed_change", both & (v[:-1] * v[1:] > 0) & (ratio > motors.max_speed_change * (1 + 1e-9)),
+                      ratio, motors.max_speed_change, True))
+    return found
+
+
+def motor_runs(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(from_rest, starts)`` ``(K, N)``: the commands of a joint with speeds ``v`` that start it from
+    rest (counted against ``max_start_stops``) and that begin a constant-speed run (counted against
+    ``max_segments``)."""
+    moving = np.abs(v) > _MOVING
+    first = np.ones((1, v.shape[1]), dtype=bool)
+    from_rest = moving & np.vstack([first, ~moving[:-1]])
+    starts = moving & np.vstack([first, ~moving[:-1] | (np.abs(v[1:] - v[:-1]) > _MOVING)])
+    return from_rest, starts
 
 
 _DATASET_CHECKS = (

@@ -172,13 +172,12 @@ def plan(
 
 def _stretched(scenario: Scenario, result: PlanResult, settings: Any, progress: ProgressCallback | None, t0: float) -> PlanResult:
     """``result`` with each positioner's move spread over more of the makespan where clear (``stretch``)."""
+    from fiberplan.geometry import default_safety_margin_mm
     from fiberplan.planners.stretch import stretch
     from fiberplan.trajectory import Trajectory
 
     if progress is not None:
         progress(1.0, "stretching the moves")
-    from fiberplan.geometry import default_safety_margin_mm
-
     margin = getattr(settings, "safety_margin_mm", None)
     margin = default_safety_margin_mm(scenario.instrument) if margin is None else float(margin)
     done = stretch(scenario, result.trajectory.times, result.trajectory.joints, margin)

@@ -40,6 +40,7 @@ from fiberplan.geometry import capsule_segments, clearance_between, motion_bound
 from fiberplan.instrument import MotorLimits
 from fiberplan.metrics import arrival_times, reached_mask
 from fiberplan.scenario import Scenario
+from fiberplan.verify import motor_breaches, motor_runs
 
 WINDOW_DIVISORS = (1, 2, 4)
 """The windows offered end at the makespan's sample, or half or a quarter of the way to it from
@@ -122,8 +123,6 @@ class _Checker:
         self._original = joints.copy()
         self._segments: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # as they now move
         self._planned: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # as planned
-        self._candidate: tuple[int, int, int, np.ndarray, np.ndarray] = (-1, 0, 0, np.empty(0), np.empty(0))
-        self._candidate_column: np.ndarray | None = None
 
     def segments(self, j: int, original: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Capsule segments ``(T, C, 2)`` (start, end) of positioner ``j`` as it now moves (or as
@@ -160,14 +159,10 @@ class _Checker:
         them. Only samples ``a`` to ``b`` are looked at: outside them ``i`` is where it was (at its
         start before ``a``, at its end after ``b``), against neighbours already checked against that."""
         others = np.array(sorted(self.neighbours[i]), dtype=np.int64)
-        s = self.scenario
-        start, end = capsule_segments(self.inst, s.base_xy[i : i + 1], s.orient[i : i + 1], column[a : b + 1, None])
-        self._candidate = (i, a, b, start[:, 0], end[:, 0])
-        self._candidate_column = column
         if not len(others):
             return True
         column, joints = column[a : b + 1], self.joints[a : b + 1]
-        seg_i = (start[:, 0], end[:, 0])
+        seg_i = self._window_segments(i, column)
         floors = self.floors(i, others)[:, None]
         if b - a > 2 * PRECHECK_STRIDE:  # most refusals show at a few samples: those first
             few = np.arange(PRECHECK_STRIDE // 2, b - a, PRECHECK_STRIDE)
@@ -185,13 +180,15 @@ class _Checker:
             return True
         return self._bisect(i, column, joints, others, jj, kk, c_lo[jj, kk], c_hi[jj, kk], bound[jj, kk])
 
+    def _window_segments(self, i: int, column: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Capsule segments ``(W, C, 2)`` of positioner ``i`` at the samples ``column`` ``(W, 2)``."""
+        s = self.scenario
+        start, end = capsule_segments(self.inst, s.base_xy[i : i + 1], s.orient[i : i + 1], column[:, None])
+        return start[:, 0], end[:, 0]
+
     def accept(self, i: int, column: np.ndarray, a: int, b: int) -> None:
         """Positioner ``i`` moves as ``column`` (changed from its samples ``a`` to ``b`` only)."""
-        if self._candidate[:3] == (i, a, b) and self._candidate_column is column:  # just checked: its segments at hand
-            start, end = self._candidate[3], self._candidate[4]
-        else:
-            s = self.scenario
-            start, end = (x[:, 0] for x in capsule_segments(self.inst, s.base_xy[i : i + 1], s.orient[i : i + 1], column[a : b + 1, None]))
+        start, end = self._window_segments(i, column[a : b + 1])
         old_start, old_end = self.segments(i)
         new_start, new_end = old_start.copy(), old_end.copy()  # (the planned ones may be the same arrays)
         new_start[a : b + 1], new_end[a : b + 1] = start, end
@@ -226,29 +223,22 @@ class _Checker:
 
 def motor_counts(column: np.ndarray, dt: np.ndarray, motors: MotorLimits) -> np.ndarray:
     """How often one positioner's samples ``(T, 2)`` break each motor rule the instrument states,
-    per joint: ``(2, 5)`` counts of moving steps below the minimum speed, reversals without a stop,
+    per joint: ``(2, 5)`` counts of commands below the minimum speed, reversals without a stop,
     speed changes above the limit, and constant-speed runs and starts from rest beyond the limits
-    (the verifier's rules, :func:`fiberplan.verify._check_motors`, counted rather than reported at
-    their worst)."""
+    (the verifier's rules, :func:`fiberplan.verify.motor_breaches` and :func:`~fiberplan.verify.motor_runs`,
+    counted rather than reported at their worst)."""
+    kinds = ("min_speed", "reversal", "speed_change")
     counts = np.zeros((2, 5), dtype=np.int64)
-    tol = 1e-9
     v = np.diff(column, axis=0) / dt[:, None]  # (T - 1, 2)
-    moving = np.abs(v) > tol
-    both = moving[:-1] & moving[1:]
-    jump = np.abs(v[1:] - v[:-1])
-    if motors.min_speed_rad_s is not None:
-        counts[:, 0] = np.sum(moving & (np.abs(v) < np.asarray(motors.min_speed_rad_s)[None, :] * (1 - 1e-9)), axis=0)
-    if motors.stop_before_reversing:
-        counts[:, 1] = np.sum(both & (v[:-1] * v[1:] < 0), axis=0)
-    if motors.max_speed_change is not None:
-        ratio = jump / np.maximum(np.abs(v[:-1]), tol)
-        counts[:, 2] = np.sum(both & (v[:-1] * v[1:] > 0) & (ratio > motors.max_speed_change * (1 + 1e-9)), axis=0)
-    if motors.max_segments is not None:
-        runs = np.sum(moving & np.vstack([np.ones((1, 2), dtype=bool), ~moving[:-1] | (jump > tol)]), axis=0)
-        counts[:, 3] = np.maximum(runs - motors.max_segments, 0)
-    if motors.max_start_stops is not None:
-        starts = np.sum(moving & np.vstack([np.ones((1, 2), dtype=bool), ~moving[:-1]]), axis=0)
-        counts[:, 4] = np.maximum(starts - motors.max_start_stops, 0)
+    for axis in (0, 1):
+        speeds = v[:, axis : axis + 1]
+        for kind, mask, *_ in motor_breaches(motors, speeds, axis):
+            counts[axis, kinds.index(kind)] = int(mask.sum())
+        from_rest, starts = motor_runs(speeds)
+        if motors.max_segments is not None:
+            counts[axis, 3] = max(int(starts.sum()) - motors.max_segments, 0)
+        if motors.max_start_stops is not None:
+            counts[axis, 4] = max(int(from_rest.sum()) - motors.max_start_stops, 0)
     return counts
 
 
