@@ -130,14 +130,23 @@ def _seed_list(text: str) -> list[int]:
 
 
 def cmd_compare(args: argparse.Namespace) -> None:
+    from fiberplan._atomic import exclusive
+
+    name = args.name or f"central_{args.instrument}_{args.n}"
+    path = RESULTS / f"{name}.json"
+    # Held for the whole run: a second compare of the same name (a resume started twice) would
+    # rewrite the file with its own seeds after each one, and the first's would be lost.
+    with exclusive(path, what="bench.py compare: result", fix="wait for that compare to end or stop it, or give another --name"):
+        _compare(args, name, path)
+
+
+def _compare(args: argparse.Namespace, name: str, path: Path) -> None:
     from _machine import source_tree
 
     from fiberplan.studies import run_compare
     from fiberplan.studies.analysis import aggregate
     from fiberplan.studies.compare import CompareResult
 
-    name = args.name or f"central_{args.instrument}_{args.n}"
-    path = RESULTS / f"{name}.json"
     if args.resume and args.overwrite:
         sys.exit("bench.py compare: --resume keeps the seeds of a stopped run, --overwrite replaces them; give one of the two")
     if args.resume and not path.exists():
@@ -292,7 +301,12 @@ def main() -> None:
     gap.add_argument("--name", required=True, help="result file name")
     gap.add_argument("--overwrite", action="store_true", help="replace an existing result file of that name")
     args = parser.parse_args()
-    {"run": cmd_run, "table": cmd_table, "compare": cmd_compare, "gap": cmd_gap}[args.command](args)
+    from fiberplan.errors import FiberplanError
+
+    try:
+        {"run": cmd_run, "table": cmd_table, "compare": cmd_compare, "gap": cmd_gap}[args.command](args)
+    except FiberplanError as e:  # (a refused input or a result in use: one line, no traceback)
+        sys.exit(f"bench.py {args.command}: {e}" if not str(e).startswith("bench.py") else str(e))
 
 
 if __name__ == "__main__":

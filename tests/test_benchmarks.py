@@ -109,6 +109,26 @@ def test_a_stopped_compare_resumes_with_its_seeds_kept(tmp_path: Path, monkeypat
     assert not (tmp_path / "d.json").exists()
 
 
+def test_a_compare_in_use_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A compare writes its file after every seed: a second of the same name (a resume started
+    twice) would overwrite the first's seeds with its own, so it is refused while the first runs."""
+    import json
+
+    import bench
+
+    from fiberplan._atomic import exclusive
+
+    monkeypatch.setattr(bench, "RESULTS", tmp_path)
+    base = ["bench.py", "compare", "--instrument", "desi", "-n", "7", "--planners", "straight", "--kind", "random", "--name", "c"]
+    with exclusive(tmp_path / "c.json"):  # (another run holds it: an open file description of its own)
+        monkeypatch.setattr(sys, "argv", base + ["--seed-list", "0"])
+        with pytest.raises(SystemExit, match=r"c\.json' is being written by another run \(process \d+\); wait for that compare"):
+            bench.main()
+    assert not (tmp_path / "c.json").exists()
+    bench.main()  # released: the same command runs
+    assert json.loads((tmp_path / "c.json").read_text())["parameters"]["seeds"] == [0]
+
+
 def test_gap_does_not_overwrite_a_result(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import json
 

@@ -257,3 +257,29 @@ def test_sweep_without_live_workers_stops_and_keeps_finished_rows(tmp_path):
     # Finished rows are kept; runs whose results died with the worker are "lost", to run again.
     assert 3 <= len(ok) and len(kept) < len(spec.tasks) and set(kept["status"]) <= {"ok", "lost"}
     assert finished_tasks(spec) == set(ok["task"])
+
+
+def test_a_second_run_of_a_study_is_refused_while_the_first_runs(tmp_path):
+    """Two runs of one study would run its tasks twice and race each other's table: the second
+    is refused, naming the first's process; once the first ends (here killed), the study runs."""
+    spec_path = write_spec(tmp_path, seeds=1)
+    spec = load_study(spec_path)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom fiberplan._atomic import exclusive\n"
+         f"with exclusive({str(spec.out)!r}):\n    print('held', flush=True)\n    time.sleep(600)"],
+        stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        cmd = [sys.executable, "-m", "fiberplan.cli", "sweep", str(spec_path), "--workers", "1", "-q"]
+        refused = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+        assert refused.returncode != 0 and "Traceback" not in refused.stderr
+        assert f"being written by another run (process {holder.pid})" in refused.stderr
+        assert "wait for it to end or stop it" in refused.stderr
+        assert not spec.out.exists() and not finished_tasks(spec)  # nothing run, nothing written
+    finally:
+        holder.kill()
+        holder.wait()
+    ran = subprocess.run(cmd, capture_output=True, text=True, timeout=300)  # the lock went with its process
+    assert ran.returncode == 0, ran.stderr
+    assert len(pd.read_parquet(spec.out)) == len(spec.tasks)

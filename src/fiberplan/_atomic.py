@@ -194,3 +194,34 @@ def atomic_path(final_path: str | os.PathLike[str], *, what: str = "output") -> 
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
+
+
+@contextlib.contextmanager
+def exclusive(path: str | os.PathLike[str], *, what: str = "output", fix: str = "wait for it to end, or stop it") -> Iterator[None]:
+    """Hold the only right to write ``path`` (a result that a run rewrites as it goes) while the
+    block runs; a second run that asks for it meanwhile is refused (:class:`OutputError`,
+    naming the process that holds it and the fix) instead of racing the first (two resumes of one
+    result each rewriting it with their own rows would lose the other's).
+
+    The right is an advisory lock (``flock``) on a hidden file beside ``path``
+    (``.<name>.lock``): the system releases it when its process ends, however it ends, so no stale
+    lock outlives a killed run. The file itself stays (removing it could let a third run lock a
+    new file while a second still holds the old one)."""
+    import fcntl
+
+    final = Path(path)
+    folder = final.parent if str(final.parent) else Path(".")
+    folder.mkdir(parents=True, exist_ok=True)
+    lock = folder / f".{final.name}.lock"
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise OutputError(f"{what} {str(final)!r} is being written by another run (process {holder}); {fix}") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # (closing releases the lock)

@@ -16,6 +16,8 @@ distributed cluster, and the sweep is resumable and loss-free:
   times) and, if still lost, recorded as ``status = "lost"`` and run again on resume;
 - with no live Dask worker for ``no_worker_timeout_s`` the sweep stops with an error (exit
   status 3 from the command line), keeping every finished row.
+- a second run of the same study (the same table) while one is going on is refused, naming
+  the process that runs it: the two would run the same tasks twice.
 
 Study file layout::
 
@@ -59,7 +61,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fiberplan._atomic import atomic_path
+from fiberplan._atomic import atomic_path, exclusive
 from fiberplan._keys import check_keys
 from fiberplan.errors import FiberplanError, InfrastructureError, StudyError
 from fiberplan.studies.runner import RunSpec, empty_row, rows_frame, run_one
@@ -471,7 +473,17 @@ def run_study(
         scheduler: address of a Dask distributed scheduler; runs there instead of locally.
         progress: show a progress bar (counts and ETA) on stderr.
         consolidate_every_s: rebuild the table at most this often while runs finish.
+
+    Raises:
+        OutputError: another run of the same study (the same table) is going on: two would run
+            the same tasks twice and race each other's table.
     """
+    with exclusive(spec.out, what="study table", fix="another run of this study is going on: wait for it to end or stop it "
+                   "(the same command then resumes)"):
+        return _run_study(spec, workers, scheduler, progress, consolidate_every_s)
+
+
+def _run_study(spec: StudySpec, workers: int | None, scheduler: str | None, progress: bool, consolidate_every_s: float) -> int:
     if spec.parts_dir.is_dir():
         for stale in spec.parts_dir.glob(".*.part.parquet"):  # left by a writer that was killed
             stale.unlink(missing_ok=True)
