@@ -51,6 +51,7 @@ class _Options:
     retract_up_to: int = 0  # route_retract_up_to
     pairs_above: float = 0.0  # schedule_pairs_retry of a planner with schedule_pairs off (the mpc's), else 0: never
     rescue_up_to: int = 0  # route_rescue_up_to
+    groups: bool = False  # route_groups
 
     @property
     def solo(self) -> tuple[float, float]:
@@ -91,7 +92,7 @@ def _reversed(joints: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------- strategies
 def _direct(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piece]:
     t0 = time.perf_counter()
-    leg = complete_leg(scenario, plan_leg, opts.attempts, strict=False, restarts=opts.restarts, solo=opts.solo, tails=opts.tails)
+    leg = complete_leg(scenario, plan_leg, opts.attempts, strict=False, restarts=opts.restarts, solo=opts.solo, tails=opts.tails, groups=opts.groups)
     return [_Piece("direct", leg.joints, np.flatnonzero(scenario.has_target).tolist(), leg.runs, time.perf_counter() - t0,
                    first_samples=leg.first_samples, rescued=leg.rescued)]
 
@@ -103,7 +104,7 @@ def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Pie
     the plan brings every positioner exactly back to its start, or the two legs join."""
     t0 = time.perf_counter()
     back = leg_scenario(scenario, scenario.target, scenario.start, REVERSE_LEG)
-    leg = complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails)
+    leg = complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails, groups=opts.groups)
     if leg.complete:
         who = np.flatnonzero(scenario.has_target).tolist()
         return [_Piece("reverse (planned from the targets)", _reversed(leg.joints), who, leg.runs, time.perf_counter() - t0,
@@ -223,8 +224,8 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     back = leg_scenario(scenario, back_start, hold, UNFOLD_REVERSED_LEG)
     # The two legs are independent: the second is planned in a forked process meanwhile.
     first, second = both(
-        lambda: complete_leg(fold, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails),
-        lambda: complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails),
+        lambda: complete_leg(fold, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails, groups=opts.groups),
+        lambda: complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails, groups=opts.groups),
     )
     met = ""
     if not (first.complete and second.complete):
@@ -291,14 +292,14 @@ def _meet(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.ndarr
         if second_meets:
             meeting = first.joints[-1]
             leg = leg_scenario(scenario, back_start, meeting, UNFOLD_REVERSED_LEG)
-            second = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails)
+            second = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails, groups=opts.groups)
             if second.complete:
                 second = second.ending_at(leg.target, meeting)
                 break
         else:
             meeting = second.joints[-1]
             leg = leg_scenario(scenario, start, meeting, "fold")
-            first = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails)
+            first = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails, groups=opts.groups)
             if first.complete:
                 first = first.ending_at(leg.target, meeting)
                 break
@@ -568,7 +569,7 @@ def _direct_retraction(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, di
             sets.append(retract)
 
     def plan(leg: Scenario) -> np.ndarray | None:
-        done = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails)
+        done = complete_leg(leg, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails, groups=opts.groups)
         return done.joints if done.complete else None
 
     best: list[_Piece] | None = None
@@ -624,7 +625,7 @@ def _options(settings: Any, scenario: Scenario) -> _Options:
                     float(getattr(settings, "safety_margin_mm", 0.0)), step, settings.dt_s, rest, settings.route_tails,
                     int(getattr(settings, "route_prioritized_up_to", 0)), int(getattr(settings, "route_retract_up_to", 0)),
                     0.0 if getattr(settings, "schedule_pairs", True) else float(getattr(settings, "schedule_pairs_retry", 0.0)),
-                    int(getattr(settings, "route_rescue_up_to", 0)))
+                    int(getattr(settings, "route_rescue_up_to", 0)), bool(getattr(settings, "route_groups", False)))
 
 
 def _is_dense(scenario: Scenario) -> bool:

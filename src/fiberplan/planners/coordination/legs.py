@@ -20,6 +20,7 @@ import numpy as np
 
 from fiberplan.geometry import motion_bound, path_clearance, point_extents
 from fiberplan.metrics import arrival_times
+from fiberplan.planners.coordination.groups import groups as group_moves
 from fiberplan.planners.coordination.settings import REVERSE_LEG, REVERSED_LEGS, TAIL_FORWARD
 from fiberplan.planners.coordination.solo import solo_moves
 from fiberplan.scenario import TARGET_JOINTS, TARGET_NONE, Scenario, _replace
@@ -137,7 +138,7 @@ def at_targets(scenario: Scenario, joints: np.ndarray) -> np.ndarray:
 
 def complete_leg(
     leg: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None = None, unblock: bool = True, strict: bool = True,
-    restarts: float | None = None, solo: tuple[float, float] | None = None, tails: bool = False,
+    restarts: float | None = None, solo: tuple[float, float] | None = None, tails: bool = False, groups: bool = False,
 ) -> Leg:
     """Plan ``leg``, then again from where each attempt stopped, until every positioner sits on
     its target, an attempt brings none closer, or ``time_limit_s`` of motion is used up. When an
@@ -148,10 +149,12 @@ def complete_leg(
     With ``solo = (floor_mm, dt_s)``, positioners the attempts leave short go home one at a time
     along their own grid paths while everyone else holds (:mod:`.solo`), before the fallback
     planner and once more at the end. With ``tails`` (and ``restarts``), a complete leg whose last
-    positioners straggle has its tail planned backwards (:func:`tail_backwards`)."""
+    positioners straggle has its tail planned backwards (:func:`tail_backwards`). With ``groups``
+    (and ``solo``), the first attempt's positioners left short go home with the neighbours in
+    their way by group moves (:mod:`.groups`) where every group finds a way."""
     t0 = time.perf_counter()
     notes: dict[str, bool] = {}
-    joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo, notes)
+    joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo, notes, groups)
     first = len(joints)
     # Restarts help a leg whose planner brought everyone home in one run, its stragglers late; a
     # leg that needed further attempts has stragglers that restarts leave stuck again (measured
@@ -281,7 +284,7 @@ def _straggles(leg: Scenario, joints: np.ndarray, dt_s: float) -> bool:
 
 def _attempts(
     leg: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None, unblock: bool, strict: bool,
-    solo: tuple[float, float] | None = None, notes: dict[str, bool] | None = None,
+    solo: tuple[float, float] | None = None, notes: dict[str, bool] | None = None, groups: bool = False,
 ) -> tuple[np.ndarray, int, bool]:
     """The attempts of :func:`complete_leg`; ``notes["rescued"]`` is set when the rounds of
     :data:`FALLBACK_ROUNDS` went beyond the single fallback attempt of before (see :class:`Leg`)."""
@@ -314,6 +317,10 @@ def _attempts(
         at = at_targets(leg, end)
         if at.all():  # (one piece: the planner's own array, not a copy of it: 200 MB at 50,000 positioners)
             return (pieces[0] if len(pieces) == 1 else np.concatenate(pieces)), k, True
+        if groups and solo is not None and k == 1:
+            grouped = group_moves(leg, joints, *solo)
+            if grouped is not None:
+                return grouped, k, True
         if k < attempts and int(at.sum()) > done_before:  # another attempt follows: it starts at the last arrival
             cut = _until_last_arrival(leg, joints)
             pieces[-1] = cut if len(pieces) == 1 else cut[1:]

@@ -46,6 +46,9 @@ class RouteSettings:
                                        "direct plan and, where it leaves positioners short or late, a partial retraction of those "
                                        "alone, everyone else going straight (two legs of the planner); kept where shorter (0: never)",
                                        unit="positioners", low=0, high=1_000_000, group="route")
+    route_groups: bool = setting(False, "the positioners a leg's first attempt leaves short go home together with the neighbours "
+                                 "in their way, by a search in their joint angles together while everyone around them holds "
+                                 "(group moves); taken where every group finds a way", group="route")
     stretch: bool = setting(False, "after planning, each positioner's move is spread over more of the makespan, along its "
                             "own path or the straight joint move, where every neighbour pair keeps the safety margin at the "
                             "samples (less energy; the same starts and ends, the makespan never later; no motor rule broken "

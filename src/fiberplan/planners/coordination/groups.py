@@ -1,0 +1,234 @@
+"""Group moves: the positioners a leg's first attempt leaves short go home together with the
+neighbours in their way, by a search in their joint configurations together, everyone around
+them holding still (``formulations/coordination.md``, Completing a leg; setting
+``route_groups``, off by default).
+
+A stalled fold (MOONS 500, session 38) has a few stragglers whose way home sweeps over a
+neighbour both where that neighbour started and where it folded: neither can go first along its
+own path, and a search of one around the other held still (:mod:`.solo`) finds nothing. Searched
+together, the neighbour steps aside while the straggler passes and then goes home. Here:
+
+- each positioner left short and the neighbours its straight joint move to its target crosses
+  (held where the attempt left them) form a group; groups that touch are one;
+- a group starts at the attempt's sample after which none of its other neighbours moves (they
+  hold from there on, as obstacles), from where its members stood at that sample;
+- a bidirectional rapidly-exploring random tree (RRT-Connect, Kuffner and LaValle 2000) in the
+  group's joint angles together, between that configuration and the targets, inside the hard
+  stops, joins the two by straight joint moves; random shortcuts then shorten the path;
+- every straight move of the path is checked at sub-steps whose motion bound is at most
+  :data:`RESOLUTION_MM`: each pair (two members, or a member and a neighbour held still) keeps
+  the floor at the sub-steps, and the bound proves the pair clear between them;
+- the path is played with its segments one after the other, each as fast as its slowest joint
+  allows, on the planner's time grid; the rest of the field keeps its planned motion.
+
+The search is seeded (the same leg, the same path) and bounded by :data:`ITERATIONS`, not by
+time, so plans are reproducible. A leg is returned only when every group gets home; the caller's
+verifier checks the whole trajectory.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from fiberplan.geometry import clearance_rows, motion_bound, point_extents
+from fiberplan.scenario import Scenario
+
+RESOLUTION_MM = 0.3
+"""Largest motion bound (mm) of a sub-step at which a straight move of the path is checked."""
+
+STEP_RAD = 0.15
+"""Largest joint change (rad) of one extension of a tree."""
+
+ITERATIONS = 4000
+"""Extensions (of either tree) one group's search may make before it gives up."""
+
+SHORTCUTS = 400
+"""Random shortcuts tried on a found path."""
+
+GOAL_BIAS = 0.1
+"""Share of the samples that aim at the other tree's root."""
+
+
+def _neighbours(scenario: Scenario) -> list[np.ndarray]:
+    out: list[list[int]] = [[] for _ in range(scenario.n_positioners)]
+    for i, j in scenario.pairs.tolist():
+        out[i].append(j)
+        out[j].append(i)
+    return [np.array(sorted(n), dtype=np.int64) for n in out]
+
+
+class _Group:
+    """Clearance checks of one group's members moving together among neighbours held at ``q``."""
+
+    def __init__(self, leg: Scenario, q: np.ndarray, members: list[int], nbrs: list[np.ndarray], floor_mm: float) -> None:
+        self.leg, self.members, self.floor = leg, np.asarray(members, dtype=np.int64), floor_mm
+        index = {m: a for a, m in enumerate(members)}
+        inner, outer = [], []
+        for a, i in enumerate(members):
+            for j in nbrs[i].tolist():
+                if j in index:
+                    if a < index[j]:
+                        inner.append((a, index[j]))
+                else:
+                    outer.append((a, j))
+        self.inner = np.array(inner, dtype=np.int64).reshape(-1, 2)
+        self.outer = np.array(outer, dtype=np.int64).reshape(-1, 2)
+        self.q_outer = q[self.outer[:, 1]]
+        self.rho = point_extents(leg.instrument)
+        lim = leg.instrument.limits_rad
+        self.lo, self.hi = np.tile(lim[:, 0], len(members)), np.tile(lim[:, 1], len(members))
+
+    def clearance(self, x: np.ndarray) -> np.ndarray:
+        """``(M, P)`` clearances of the group's pairs (inner, then outer) at configurations ``x`` ``(M, g, 2)``."""
+        leg, m = self.leg, len(x)
+        a, b = self.inner[:, 0], self.inner[:, 1]
+        o, j = self.outer[:, 0], self.outer[:, 1]
+        ii = np.concatenate([self.members[a], self.members[o]])
+        jj = np.concatenate([self.members[b], j])
+        qi = np.concatenate([x[:, a], x[:, o]], axis=1).reshape(-1, 2)
+        qj = np.concatenate([x[:, b], np.broadcast_to(self.q_outer, (m, len(j), 2))], axis=1).reshape(-1, 2)
+        ii, jj = np.tile(ii, m), np.tile(jj, m)
+        c = clearance_rows(leg.instrument, leg.base_xy[ii], leg.orient[ii], qi, leg.base_xy[jj], leg.orient[jj], qj)
+        return c.min(axis=1).reshape(m, -1)
+
+    def edge_ok(self, x0: np.ndarray, x1: np.ndarray) -> bool:
+        """Whether the straight joint move ``x0 -> x1`` (flat ``(2g,)``) keeps every pair at the
+        floor at its sub-steps and clear between them."""
+        d = np.abs(x1 - x0).reshape(-1, 2)
+        moved = motion_bound(self.rho, d)  # (g,) over the whole move
+        k = max(1, int(np.ceil(moved.max() / RESOLUTION_MM)))
+        s = np.linspace(0.0, 1.0, k + 1)[:, None]
+        x = (x0[None] * (1.0 - s) + x1[None] * s).reshape(k + 1, -1, 2)
+        c = self.clearance(x)  # (k + 1, P)
+        if np.any(c < self.floor):
+            return False
+        per = moved / k  # each member's motion bound per sub-step
+        bound = np.concatenate([per[self.inner[:, 0]] + per[self.inner[:, 1]], per[self.outer[:, 0]]])
+        return bool(np.all(0.5 * (c[:-1] + c[1:] - bound[None]) > 0.0))
+
+
+def _connect(group: _Group, start: np.ndarray, goal: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
+    """RRT-Connect between ``start`` and ``goal`` (flat): waypoints ``(W, 2g)`` or ``None``."""
+    trees = [([start], [-1]), ([goal], [-1])]
+    swapped = False
+
+    def extend(tree: tuple[list[np.ndarray], list[int]], x: np.ndarray) -> tuple[int | None, bool]:
+        nodes, parents = tree
+        near = int(np.argmin(np.abs(np.asarray(nodes) - x).max(axis=1)))
+        d = x - nodes[near]
+        n = float(np.abs(d).max())
+        new = x if n <= STEP_RAD else nodes[near] + d * (STEP_RAD / n)
+        if not group.edge_ok(nodes[near], new):
+            return None, False
+        nodes.append(new)
+        parents.append(near)
+        return len(nodes) - 1, n <= STEP_RAD
+
+    def chain(tree: tuple[list[np.ndarray], list[int]], k: int) -> list[np.ndarray]:
+        nodes, parents = tree
+        out = []
+        while k != -1:
+            out.append(nodes[k])
+            k = parents[k]
+        return out
+
+    for _ in range(ITERATIONS):
+        a, b = trees
+        x = b[0][0] if rng.random() < GOAL_BIAS else rng.uniform(group.lo, group.hi)
+        k, _ = extend(a, x)
+        if k is not None:
+            while True:
+                kb, reached = extend(b, a[0][k])
+                if kb is None:
+                    break
+                if reached:
+                    path = chain(a, k)[::-1] + chain(b, kb)
+                    return np.array(path[::-1] if swapped else path)
+        trees = [b, a]
+        swapped = not swapped
+    return None
+
+
+def _shortcut(group: _Group, path: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    points = list(path)
+    for _ in range(SHORTCUTS):
+        if len(points) < 3:
+            break
+        i, j = sorted(rng.choice(len(points), 2, replace=False).tolist())
+        if j - i >= 2 and group.edge_ok(points[i], points[j]):
+            points = points[: i + 1] + points[j:]
+    return np.array(points)
+
+
+def _timed(path: np.ndarray, speeds: np.ndarray, dt_s: float) -> np.ndarray:
+    """Samples ``(K, 2g)`` of ``path`` on the time grid, each segment as fast as its slowest joint allows."""
+    w = np.tile(speeds, path.shape[1] // 2)
+    out = [path[:1]]
+    for x0, x1 in itertools.pairwise(path):
+        steps = max(1, int(np.ceil(float(np.max(np.abs(x1 - x0) / w)) / dt_s - 1e-9)))
+        s = (np.arange(1, steps + 1) / steps)[:, None]
+        out.append(x0[None] * (1.0 - s) + x1[None] * s)
+    timed = np.concatenate(out)
+    timed[-1] = path[-1]
+    return timed
+
+
+def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed: int = 0) -> np.ndarray | None:
+    """``joints`` ``(K, N, 2)`` (an attempt of ``leg``) with everyone it left short brought home
+    by group moves, or ``None`` if some group finds no way (or nobody is short)."""
+    target, end = leg.target, joints[-1]
+    short = np.flatnonzero(~np.all(end == target, axis=1) & ~leg.locked)
+    if not len(short):
+        return None
+    nbrs = _neighbours(leg)
+    inst = leg.instrument
+    speeds = inst.speeds_rad_s
+    rho = point_extents(inst)
+    members = set(short.tolist())
+    for i in short.tolist():
+        others = nbrs[i][~leg.locked[nbrs[i]]]
+        if not len(others):
+            continue
+        steps = int(np.ceil(float(motion_bound(rho, np.abs(target[i] - end[i]))) / RESOLUTION_MM)) + 1
+        way = end[i][None] + (target[i] - end[i])[None] * np.linspace(0.0, 1.0, steps)[:, None]
+        rows_i = np.full(steps * len(others), i)
+        rows_j = np.tile(others, steps)
+        c = clearance_rows(inst, leg.base_xy[rows_i], leg.orient[rows_i], np.repeat(way, len(others), axis=0),
+                           leg.base_xy[rows_j], leg.orient[rows_j], end[rows_j]).min(axis=1).reshape(steps, -1)
+        members.update(others[c.min(axis=0) < floor_mm].tolist())
+    # Groups that touch are one.
+    left, found = set(members), []
+    while left:
+        stack = [left.pop()]
+        part = set(stack)
+        while stack:
+            for j in nbrs[stack.pop()].tolist():
+                if j in left:
+                    left.remove(j)
+                    part.add(j)
+                    stack.append(j)
+        found.append(sorted(part))
+    moving = np.any(joints[1:] != joints[:-1], axis=2)  # (K - 1, N)
+    rng = np.random.default_rng(seed)
+    tails = []
+    for part in found:
+        outer = np.setdiff1d(np.concatenate([nbrs[i] for i in part]), part)
+        later = np.flatnonzero(moving[:, outer].any(axis=1)) if len(outer) else np.zeros(0, dtype=np.int64)
+        k0 = int(later[-1]) + 1 if len(later) else 0
+        group = _Group(leg, joints[k0], part, nbrs, floor_mm)
+        start, goal = joints[k0, part].ravel(), target[part].ravel()
+        if not group.edge_ok(start, start) or not group.edge_ok(goal, goal):
+            return None
+        path = _connect(group, start, goal, rng)
+        if path is None:
+            return None
+        tails.append((k0, part, _timed(_shortcut(group, path, rng), speeds, dt_s)))
+    length = max([len(joints)] + [k0 + len(t) for k0, _, t in tails])
+    out = np.concatenate([joints, np.repeat(joints[-1:], length - len(joints), axis=0)])
+    for k0, part, t in tails:
+        placed = t.reshape(len(t), len(part), 2)
+        out[k0 : k0 + len(t), part] = placed
+        out[k0 + len(t) :, part] = target[part]
+    return out
