@@ -9,9 +9,11 @@ own path, and a search of one around the other held still (:mod:`.solo`) finds n
 together, the neighbour steps aside while the straggler passes and then goes home. Here:
 
 - each positioner left short and the neighbours its straight joint move to its target crosses
-  (held where the attempt left them) form a group; groups that touch are one;
-- a group starts at the attempt's sample after which none of its other neighbours moves (they
-  hold from there on, as obstacles), from where its members stood at that sample;
+  (held where the attempt left them) form a group; groups that share a member are one;
+- a group starts at the sample after which none of its other neighbours moves (they hold from
+  there on, as obstacles), from where its members stood at that sample; groups are planned one
+  after the other, each in the trajectory as the ones before left it, so a group next to an
+  earlier one starts once that one is home;
 - a bidirectional rapidly-exploring random tree (RRT-Connect, Kuffner and LaValle 2000) in the
   group's joint angles together, between that configuration and the targets, inside the hard
   stops, joins the two by straight joint moves; random shortcuts then shorten the path;
@@ -186,49 +188,41 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
     inst = leg.instrument
     speeds = inst.speeds_rad_s
     rho = point_extents(inst)
-    members = set(short.tolist())
+    parts: list[set[int]] = []
     for i in short.tolist():
+        part = {i}
         others = nbrs[i][~leg.locked[nbrs[i]]]
-        if not len(others):
-            continue
-        steps = int(np.ceil(float(motion_bound(rho, np.abs(target[i] - end[i]))) / RESOLUTION_MM)) + 1
-        way = end[i][None] + (target[i] - end[i])[None] * np.linspace(0.0, 1.0, steps)[:, None]
-        rows_i = np.full(steps * len(others), i)
-        rows_j = np.tile(others, steps)
-        c = clearance_rows(inst, leg.base_xy[rows_i], leg.orient[rows_i], np.repeat(way, len(others), axis=0),
-                           leg.base_xy[rows_j], leg.orient[rows_j], end[rows_j]).min(axis=1).reshape(steps, -1)
-        members.update(others[c.min(axis=0) < floor_mm].tolist())
-    # Groups that touch are one.
-    left, found = set(members), []
-    while left:
-        stack = [left.pop()]
-        part = set(stack)
-        while stack:
-            for j in nbrs[stack.pop()].tolist():
-                if j in left:
-                    left.remove(j)
-                    part.add(j)
-                    stack.append(j)
-        found.append(sorted(part))
-    moving = np.any(joints[1:] != joints[:-1], axis=2)  # (K - 1, N)
+        if len(others):
+            steps = int(np.ceil(float(motion_bound(rho, np.abs(target[i] - end[i]))) / RESOLUTION_MM)) + 1
+            way = end[i][None] + (target[i] - end[i])[None] * np.linspace(0.0, 1.0, steps)[:, None]
+            rows_i = np.full(steps * len(others), i)
+            rows_j = np.tile(others, steps)
+            c = clearance_rows(inst, leg.base_xy[rows_i], leg.orient[rows_i], np.repeat(way, len(others), axis=0),
+                               leg.base_xy[rows_j], leg.orient[rows_j], end[rows_j]).min(axis=1).reshape(steps, -1)
+            part.update(others[c.min(axis=0) < floor_mm].tolist())
+        # Groups that share a member are one; groups that only touch go one after the other.
+        for other in [p for p in parts if p & part]:
+            parts.remove(other)
+            part |= other
+        parts.append(part)
     rng = np.random.default_rng(seed)
-    tails = []
-    for part in found:
-        outer = np.setdiff1d(np.concatenate([nbrs[i] for i in part]), part)
-        later = np.flatnonzero(moving[:, outer].any(axis=1)) if len(outer) else np.zeros(0, dtype=np.int64)
-        k0 = int(later[-1]) + 1 if len(later) else 0
-        group = _Group(leg, joints[k0], part, nbrs, floor_mm)
-        start, goal = joints[k0, part].ravel(), target[part].ravel()
+    out = joints
+    for part in sorted(sorted(p) for p in parts):
+        members = np.array(part, dtype=np.int64)
+        outer = np.setdiff1d(np.concatenate([nbrs[i] for i in part]), members)
+        moving = np.any(out[1:, outer] != out[:-1, outer], axis=(1, 2)) if len(outer) else np.zeros(0, dtype=bool)
+        later = np.flatnonzero(moving)
+        k0 = int(later[-1]) + 1 if len(later) else 0  # its other neighbours hold from here on
+        group = _Group(leg, out[k0], part, nbrs, floor_mm)
+        start, goal = out[k0, members].ravel(), target[members].ravel()
         if not group.edge_ok(start, start) or not group.edge_ok(goal, goal):
             return None
         path = _connect(group, start, goal, rng)
         if path is None:
             return None
-        tails.append((k0, part, _timed(_shortcut(group, path, rng), speeds, dt_s)))
-    length = max([len(joints)] + [k0 + len(t) for k0, _, t in tails])
-    out = np.concatenate([joints, np.repeat(joints[-1:], length - len(joints), axis=0)])
-    for k0, part, t in tails:
-        placed = t.reshape(len(t), len(part), 2)
-        out[k0 : k0 + len(t), part] = placed
-        out[k0 + len(t) :, part] = target[part]
+        timed = _timed(_shortcut(group, path, rng), speeds, dt_s).reshape(-1, len(part), 2)
+        length = max(len(out), k0 + len(timed))
+        out = np.concatenate([out, np.repeat(out[-1:], length - len(out), axis=0)])
+        out[k0 : k0 + len(timed), members] = timed
+        out[k0 + len(timed) :, members] = target[members]
     return out

@@ -1,0 +1,90 @@
+"""Group moves (planners/coordination/groups.py, setting route_groups): a stalled fold's stragglers
+and the neighbours in their way brought home together, checked by the verifier."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import fiberplan as fp
+from fiberplan.geometry import default_safety_margin_mm
+from fiberplan.planners.coordination import groups as groups_module
+from fiberplan.planners.coordination.groups import _Group, _neighbours, groups
+from fiberplan.planners.coordination.legs import leg_scenario, trim
+from fiberplan.planners.coordination.settings import REVERSE_LEG
+from fiberplan.trajectory import Trajectory
+
+
+@pytest.fixture(scope="module")
+def stalled():
+    """MOONS 61 (`moons-capsules`) unfold seed 6: the fold from its targets, the mpc's first attempt
+    alone, leaves positioners 4 and 24 short (each swept over by neighbours folded or not)."""
+    sc = fp.make_scenario("moons-capsules", 61, "unfold", 6)
+    fold = leg_scenario(sc, sc.target, sc.start, REVERSE_LEG)
+    result = fp.plan(fold, "mpc", {"route": "direct", "route_attempts": 1, "route_tails": False, "route_restarts": False})
+    joints = trim(result.trajectory.joints)
+    short = np.flatnonzero(~np.all(joints[-1] == fold.target, axis=1))
+    assert short.tolist() == [4, 24]
+    return fold, joints, float(result.settings["dt_s"])
+
+
+def test_group_moves_bring_a_stalled_fold_home_clear(stalled):
+    fold, joints, dt = stalled
+    floor = default_safety_margin_mm(fold.instrument)
+    out = groups(fold, joints, floor, dt)
+    assert out is not None
+    np.testing.assert_array_equal(out[0], joints[0])
+    np.testing.assert_array_equal(out[-1], fold.target)  # every positioner exactly on its target
+    steps = np.abs(np.diff(out, axis=0))
+    assert np.all(steps <= fold.instrument.speeds_rad_s * dt * (1 + 1e-9))
+    report = fp.verify(fold, Trajectory(np.arange(len(out)) * dt, out))
+    assert report.ok, report.to_dict()["collision_events"][:2]
+    # Only the groups (the short ones and the neighbours in their way) move otherwise than planned.
+    planned = np.concatenate([joints, np.repeat(joints[-1:], len(out) - len(joints), axis=0)])
+    changed = np.flatnonzero(np.any(out != planned, axis=(0, 2)))
+    assert {4, 24} <= set(changed.tolist()) and len(changed) <= 12
+    # Seeded: the same leg gives the same moves.
+    np.testing.assert_array_equal(groups(fold, joints, floor, dt), out)
+
+
+def test_no_way_means_no_group_moves(stalled, monkeypatch):
+    fold, joints, dt = stalled
+    monkeypatch.setattr(groups_module, "ITERATIONS", 1)  # a search that gives up at once
+    assert groups(fold, joints, default_safety_margin_mm(fold.instrument), dt) is None
+    assert groups(fold, np.repeat(fold.target[None], 3, axis=0), 0.05, dt) is None  # nobody short
+
+
+def test_a_move_accepted_is_clear_at_every_instant_and_some_are_refused():
+    """A straight joint move the check accepts keeps every pair clear at 2,000 instants along it;
+    moves that sweep over a neighbour are refused."""
+    sc = fp.make_scenario("moons-capsules", 19, "random", 0)
+    q = sc.start.copy()
+    nbrs = _neighbours(sc)
+    centre = int(np.argmax([len(n) for n in nbrs]))
+    group = _Group(sc, q, [centre], nbrs, 0.05)
+    lim = sc.instrument.limits_rad
+    rng = np.random.default_rng(1)
+    accepted = refused = 0
+    for _ in range(40):
+        x0, x1 = (rng.uniform(lim[:, 0], lim[:, 1]) for _ in range(2))
+        if not (group.edge_ok(x0, x0) and group.edge_ok(x1, x1)):
+            continue
+        if group.edge_ok(x0, x1):
+            s = np.linspace(0.0, 1.0, 2000)[:, None]
+            dense = (x0[None] * (1 - s) + x1[None] * s).reshape(-1, 1, 2)
+            assert group.clearance(dense).min() > 0.0
+            accepted += 1
+        else:
+            refused += 1
+    assert accepted and refused
+
+
+def test_route_groups_plans_verified_and_off_changes_nothing():
+    sc = fp.make_scenario("moons-capsules", 61, "unfold", 6)
+    on = fp.plan(sc, "mpc", {"route_groups": True})
+    report = fp.verify(sc, on.trajectory)
+    assert report.ok
+    assert fp.summarize(on, report)["reached"] == 61
+    default = fp.plan(sc, "mpc")
+    off = fp.plan(sc, "mpc", {"route_groups": False})
+    np.testing.assert_array_equal(default.trajectory.joints, off.trajectory.joints)
