@@ -24,8 +24,9 @@ together, the neighbour steps aside while the straggler passes and then goes hom
   allows, on the planner's time grid; the rest of the field keeps its planned motion.
 
 The search is seeded (the same leg, the same path) and bounded by :data:`ITERATIONS`, not by
-time, so plans are reproducible. A leg is returned only when every group gets home; the caller's
-verifier checks the whole trajectory.
+time, so plans are reproducible. Groups that find no way stay where the attempt left them, held
+still (as the groups planned beside them assumed): the leg's next attempt starts from there. The
+caller's verifier checks the whole trajectory.
 """
 
 from __future__ import annotations
@@ -43,8 +44,9 @@ RESOLUTION_MM = 0.3
 STEP_RAD = 0.15
 """Largest joint change (rad) of one extension of a tree."""
 
-ITERATIONS = 4000
-"""Extensions (of either tree) one group's search may make before it gives up."""
+ITERATIONS = 2000
+"""Extensions (of either tree) one group's search may make per member before it gives up (a
+group of five: 10,000)."""
 
 SHORTCUTS = 400
 """Random shortcuts tried on a found path."""
@@ -136,7 +138,7 @@ def _connect(group: _Group, start: np.ndarray, goal: np.ndarray, rng: np.random.
             k = parents[k]
         return out
 
-    for _ in range(ITERATIONS):
+    for _ in range(ITERATIONS * len(group.members)):
         a, b = trees
         x = b[0][0] if rng.random() < GOAL_BIAS else rng.uniform(group.lo, group.hi)
         k, _ = extend(a, x)
@@ -178,8 +180,9 @@ def _timed(path: np.ndarray, speeds: np.ndarray, dt_s: float) -> np.ndarray:
 
 
 def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed: int = 0) -> np.ndarray | None:
-    """``joints`` ``(K, N, 2)`` (an attempt of ``leg``) with everyone it left short brought home
-    by group moves, or ``None`` if some group finds no way (or nobody is short)."""
+    """``joints`` ``(K, N, 2)`` (an attempt of ``leg``) with the positioners it left short brought
+    home by group moves, every group that finds a way (the others stay where the attempt left
+    them), or ``None`` if none does (or nobody is short)."""
     target, end = leg.target, joints[-1]
     short = np.flatnonzero(~np.all(end == target, axis=1) & ~leg.locked)
     if not len(short):
@@ -207,6 +210,7 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
         parts.append(part)
     rng = np.random.default_rng(seed)
     out = joints
+    home = 0
     for part in sorted(sorted(p) for p in parts):
         members = np.array(part, dtype=np.int64)
         outer = np.setdiff1d(np.concatenate([nbrs[i] for i in part]), members)
@@ -215,14 +219,13 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
         k0 = int(later[-1]) + 1 if len(later) else 0  # its other neighbours hold from here on
         group = _Group(leg, out[k0], part, nbrs, floor_mm)
         start, goal = out[k0, members].ravel(), target[members].ravel()
-        if not group.edge_ok(start, start) or not group.edge_ok(goal, goal):
-            return None
-        path = _connect(group, start, goal, rng)
-        if path is None:
-            return None
+        path = _connect(group, start, goal, rng) if group.edge_ok(start, start) and group.edge_ok(goal, goal) else None
+        if path is None:  # (this group stays where the attempt left it)
+            continue
+        home += 1
         timed = _timed(_shortcut(group, path, rng), speeds, dt_s).reshape(-1, len(part), 2)
         length = max(len(out), k0 + len(timed))
         out = np.concatenate([out, np.repeat(out[-1:], length - len(out), axis=0)])
         out[k0 : k0 + len(timed), members] = timed
         out[k0 + len(timed) :, members] = target[members]
-    return out
+    return out if home else None

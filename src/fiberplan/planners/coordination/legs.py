@@ -315,12 +315,15 @@ def _attempts(
         pieces.append(joints if not pieces else joints[1:])
         end = joints[-1]
         at = at_targets(leg, end)
+        if groups and solo is not None and k == 1 and not at.all():
+            grouped = group_moves(leg, joints, *solo)
+            if grouped is not None:  # the next attempt (if any is needed) starts where the groups left it
+                used += (len(grouped) - len(joints)) * solo[1]
+                joints = pieces[-1] = grouped
+                end = joints[-1]
+                at = at_targets(leg, end)
         if at.all():  # (one piece: the planner's own array, not a copy of it: 200 MB at 50,000 positioners)
             return (pieces[0] if len(pieces) == 1 else np.concatenate(pieces)), k, True
-        if groups and solo is not None and k == 1:
-            grouped = group_moves(leg, joints, *solo)
-            if grouped is not None:
-                return grouped, k, True
         if k < attempts and int(at.sum()) > done_before:  # another attempt follows: it starts at the last arrival
             cut = _until_last_arrival(leg, joints)
             pieces[-1] = cut if len(pieces) == 1 else cut[1:]
