@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -150,11 +151,15 @@ def complete_leg(
     along their own grid paths while everyone else holds (:mod:`.solo`), before the fallback
     planner and once more at the end. With ``tails`` (and ``restarts``), a complete leg whose last
     positioners straggle has its tail planned backwards (:func:`tail_backwards`). With ``groups``
-    (and ``solo``), the first attempt's positioners left short go home with the neighbours in
-    their way by group moves (:mod:`.groups`) where every group finds a way."""
+    (and ``solo``), the first attempt completed by group moves (:mod:`.groups`: its positioners
+    left short go home with the neighbours in their way), where every group finds a way, is kept
+    instead of the further attempts' leg if that is incomplete or longer."""
     t0 = time.perf_counter()
-    notes: dict[str, bool] = {}
+    notes: dict[str, Any] = {}
     joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo, notes, groups)
+    grouped = notes.pop("grouped", None)
+    if grouped is not None and (not complete or len(grouped) < len(joints)):
+        joints, complete, notes["rescued"] = grouped, True, False
     first = len(joints)
     # Restarts help a leg whose planner brought everyone home in one run, its stragglers late; a
     # leg that needed further attempts has stragglers that restarts leave stuck again (measured
@@ -284,10 +289,12 @@ def _straggles(leg: Scenario, joints: np.ndarray, dt_s: float) -> bool:
 
 def _attempts(
     leg: Scenario, plan_leg: PlanLeg, attempts: int, time_limit_s: float | None, unblock: bool, strict: bool,
-    solo: tuple[float, float] | None = None, notes: dict[str, bool] | None = None, groups: bool = False,
+    solo: tuple[float, float] | None = None, notes: dict[str, Any] | None = None, groups: bool = False,
 ) -> tuple[np.ndarray, int, bool]:
     """The attempts of :func:`complete_leg`; ``notes["rescued"]`` is set when the rounds of
-    :data:`FALLBACK_ROUNDS` went beyond the single fallback attempt of before (see :class:`Leg`)."""
+    :data:`FALLBACK_ROUNDS` went beyond the single fallback attempt of before (see :class:`Leg`);
+    with ``groups``, ``notes["grouped"]`` holds the first attempt completed by group moves, where
+    every group found a way (a candidate: the attempts go on as without it)."""
     notes = {} if notes is None else notes
     if strict and leg.infeasible:  # a leg target that cannot be reached would break the joint between legs
         return leg.start[None].copy(), 0, False
@@ -316,12 +323,10 @@ def _attempts(
         end = joints[-1]
         at = at_targets(leg, end)
         if groups and solo is not None and k == 1 and not at.all():
+            # A candidate beside the attempts that follow (complete_leg keeps the shorter).
             grouped = group_moves(leg, joints, *solo)
-            if grouped is not None:  # the next attempt (if any is needed) starts where the groups left it
-                used += (len(grouped) - len(joints)) * solo[1]
-                joints = pieces[-1] = grouped
-                end = joints[-1]
-                at = at_targets(leg, end)
+            if grouped is not None and at_targets(leg, grouped[-1]).all():
+                notes["grouped"] = grouped
         if at.all():  # (one piece: the planner's own array, not a copy of it: 200 MB at 50,000 positioners)
             return (pieces[0] if len(pieces) == 1 else np.concatenate(pieces)), k, True
         if k < attempts and int(at.sum()) > done_before:  # another attempt follows: it starts at the last arrival
