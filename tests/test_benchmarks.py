@@ -121,7 +121,7 @@ def test_a_compare_in_use_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyP
     monkeypatch.setattr(bench, "RESULTS", tmp_path)
     base = ["bench.py", "compare", "--instrument", "desi", "-n", "7", "--planners", "straight", "--kind", "random", "--name", "c"]
     with exclusive(tmp_path / "c.json"):  # (another run holds it: an open file description of its own)
-        monkeypatch.setattr(sys, "argv", base + ["--seed-list", "0"])
+        monkeypatch.setattr(sys, "argv", [*base, "--seed-list", "0"])
         with pytest.raises(SystemExit, match=r"c\.json' is being written by another run \(process \d+\); wait for that compare"):
             bench.main()
     assert not (tmp_path / "c.json").exists()

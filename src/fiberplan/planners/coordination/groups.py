@@ -21,7 +21,9 @@ together, the neighbour steps aside while the straggler passes and then goes hom
   :data:`RESOLUTION_MM`: each pair (two members, or a member and a neighbour held still) keeps
   the floor at the sub-steps, and the bound proves the pair clear between them;
 - the path is played with its segments one after the other, each as fast as its slowest joint
-  allows, on the planner's time grid; the rest of the field keeps its planned motion.
+  allows, on the planner's time grid; the rest of the field keeps its planned motion. (Played so,
+  like solo moves, it starts and stops each segment at once: an instrument's motor rules, speed
+  changes and stops before reversing, are not applied to it; the verifier reports any breach.)
 
 The search is seeded (the same leg, the same path) and bounded by :data:`ITERATIONS`, not by
 time, so plans are reproducible. Groups that find no way stay where the attempt left them, held
@@ -171,7 +173,7 @@ def _timed(path: np.ndarray, speeds: np.ndarray, dt_s: float) -> np.ndarray:
     w = np.tile(speeds, path.shape[1] // 2)
     out = [path[:1]]
     for x0, x1 in itertools.pairwise(path):
-        steps = max(1, int(np.ceil(float(np.max(np.abs(x1 - x0) / w)) / dt_s - 1e-9)))
+        steps = max(1, int(np.ceil(float(np.max(np.abs(x1 - x0) / w)) / dt_s - 1e-9)))  # (within the verifier's speed tolerance)
         s = (np.arange(1, steps + 1) / steps)[:, None]
         out.append(x0[None] * (1.0 - s) + x1[None] * s)
     timed = np.concatenate(out)
