@@ -79,12 +79,45 @@ def test_a_move_accepted_is_clear_at_every_instant_and_some_are_refused():
     assert accepted and refused
 
 
-def test_route_groups_plans_verified_and_off_changes_nothing():
+def test_the_grouped_first_attempt_is_kept_where_the_attempts_after_it_are_longer(stalled):
+    """``complete_leg`` with ``groups``: the first attempt completed by group moves is kept when
+    the further attempts leave the leg short or longer; without ``groups`` they are all there is."""
+    import types
+
+    from fiberplan.planners.coordination import legs
+
+    fold, joints, dt = stalled
+    floor = default_safety_margin_mm(fold.instrument)
+
+    def plan_leg(leg, time_limit_s=None, use_fallback=False, progress=None):  # the stalled attempt, then nothing more
+        planned = joints if np.array_equal(leg.start, fold.start) else np.stack([leg.start, leg.start])
+        return types.SimpleNamespace(trajectory=Trajectory(np.arange(len(planned)) * dt, planned))
+
+    kwargs = {"unblock": False, "strict": False, "solo": (floor, dt)}
+    plain = legs.complete_leg(fold, plan_leg, 2, **kwargs)
+    grouped = legs.complete_leg(fold, plan_leg, 2, groups=True, **kwargs)
+    expected = groups(fold, joints, floor, dt)
+    assert grouped.complete and not grouped.rescued
+    if plain.complete:  # (the solo moves at the end may bring them home too: the shorter is kept)
+        assert len(grouped.joints) == min(len(plain.joints), len(expected))
+    else:
+        np.testing.assert_array_equal(grouped.joints, expected)
+    report = fp.verify(fold, Trajectory(np.arange(len(grouped.joints)) * dt, grouped.joints))
+    assert report.ok
+
+
+def test_route_groups_plans_verified_and_the_default_unchanged():
+    """On with the layer, verified and complete; off by default: MOONS 61 unfold seed 0 as
+    planned before group moves existed (session 43's hash)."""
+    import hashlib
+    import json
+    from pathlib import Path
+
     sc = fp.make_scenario("moons-capsules", 61, "unfold", 6)
     on = fp.plan(sc, "mpc", {"route_groups": True})
     report = fp.verify(sc, on.trajectory)
-    assert report.ok
-    assert fp.summarize(on, report)["reached"] == 61
-    default = fp.plan(sc, "mpc")
-    off = fp.plan(sc, "mpc", {"route_groups": False})
-    np.testing.assert_array_equal(default.trajectory.joints, off.trajectory.joints)
+    assert report.ok and fp.summarize(on, report)["reached"] == 61
+    stored = json.loads((Path(__file__).parents[1] / "benchmarks/results/hashes_s43_final.json").read_text())
+    default = fp.plan(fp.make_scenario("moons-capsules", 61, "unfold", 0), "mpc")
+    digest = hashlib.sha256(np.ascontiguousarray(default.trajectory.joints).tobytes()).hexdigest()
+    assert digest == stored["runs"]["moons-capsules-61-unfold-0"]["joints_sha256"]

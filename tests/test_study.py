@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -283,3 +284,32 @@ def test_a_second_run_of_a_study_is_refused_while_the_first_runs(tmp_path):
     ran = subprocess.run(cmd, capture_output=True, text=True, timeout=300)  # the lock went with its process
     assert ran.returncode == 0, ran.stderr
     assert len(pd.read_parquet(spec.out)) == len(spec.tasks)
+
+
+def test_a_killed_run_leaves_no_lock_behind_in_its_orphaned_workers(tmp_path):
+    """A run's worker processes are forked with a copy of its lock; killed with its workers still
+    alive, the run must not leave its study locked by them."""
+    out = tmp_path / "t.parquet"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import time\nfrom concurrent.futures import ProcessPoolExecutor\n"
+         "from fiberplan._atomic import exclusive\n"
+         f"with exclusive({str(out)!r}):\n    pool = ProcessPoolExecutor(1)\n    pid = pool.submit(__import__('os').getpid).result()\n"
+         "    print(pid, flush=True)\n    time.sleep(600)"],
+        stdout=subprocess.PIPE, text=True, start_new_session=True,
+    )
+    worker = int(holder.stdout.readline())
+    try:
+        from fiberplan._atomic import exclusive
+        from fiberplan.errors import OutputError
+
+        with pytest.raises(OutputError, match=f"process {holder.pid}"):
+            with exclusive(out):
+                pass
+        holder.kill()  # the parent only: its worker lives on, orphaned
+        holder.wait()
+        os.kill(worker, 0)  # (still there)
+        with exclusive(out):  # the lock went with the parent
+            pass
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(worker, signal.SIGKILL)

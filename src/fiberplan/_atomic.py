@@ -196,6 +196,24 @@ def atomic_path(final_path: str | os.PathLike[str], *, what: str = "output") -> 
         raise
 
 
+_LOCKS_HELD: set[int] = set()
+"""File descriptors of the locks :func:`exclusive` holds in this process."""
+
+
+def _drop_locks_in_child() -> None:
+    # A forked child (a worker pool's process, a leg planned ahead) gets copies of the lock's file
+    # descriptor, and with them the lock: a killed run's orphaned workers would keep it held. The
+    # child closes its copies; the lock stays with the parent's.
+    for fd in _LOCKS_HELD:
+        with contextlib.suppress(OSError):
+            os.close(fd)
+    _LOCKS_HELD.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_drop_locks_in_child)
+
+
 @contextlib.contextmanager
 def exclusive(path: str | os.PathLike[str], *, what: str = "output", fix: str = "wait for it to end, or stop it") -> Iterator[None]:
     """Hold the only right to write ``path`` (a result that a run rewrites as it goes) while the
@@ -205,7 +223,8 @@ def exclusive(path: str | os.PathLike[str], *, what: str = "output", fix: str = 
 
     The right is an advisory lock (``flock``) on a hidden file beside ``path``
     (``.<name>.lock``): the system releases it when its process ends, however it ends, so no stale
-    lock outlives a killed run. The file itself stays (removing it could let a third run lock a
+    lock outlives a killed run (forked children close their copies of it: a killed run's orphaned
+    workers do not hold it). The file itself stays (removing it could let a third run lock a
     new file while a second still holds the old one)."""
     import fcntl
 
@@ -218,10 +237,13 @@ def exclusive(path: str | os.PathLike[str], *, what: str = "output", fix: str = 
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
-            raise OutputError(f"{what} {str(final)!r} is being written by another run (process {holder}); {fix}") from None
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip()  # (empty: the other run has just taken it)
+            who = f"process {holder}" if holder else "it has just started"
+            raise OutputError(f"{what} {str(final)!r} is being written by another run ({who}); {fix}") from None
+        _LOCKS_HELD.add(fd)
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         yield
     finally:
+        _LOCKS_HELD.discard(fd)
         os.close(fd)  # (closing releases the lock)

@@ -22,13 +22,15 @@ together, the neighbour steps aside while the straggler passes and then goes hom
   the floor at the sub-steps, and the bound proves the pair clear between them;
 - the path is played with its segments one after the other, each as fast as its slowest joint
   allows, on the planner's time grid; the rest of the field keeps its planned motion. (Played so,
-  like solo moves, it starts and stops each segment at once: an instrument's motor rules, speed
-  changes and stops before reversing, are not applied to it; the verifier reports any breach.)
+  like solo moves, it starts and stops each segment at once, and a joint other than a segment's
+  slowest moves slower than full speed: an instrument's motor rules (speed changes, stops before
+  reversing, minimum speeds) are not applied to it; the verifier reports any breach.)
 
 The search is seeded (the same leg, the same path) and bounded by :data:`ITERATIONS`, not by
 time, so plans are reproducible. Groups that find no way stay where the attempt left them, held
-still (as the groups planned beside them assumed): the leg's next attempt starts from there. The
-caller's verifier checks the whole trajectory.
+still (as the groups planned beside them assumed); the coordination layer uses the result only
+when every group got home (``legs.complete_leg``). The caller's verifier checks the whole
+trajectory.
 """
 
 from __future__ import annotations
@@ -224,10 +226,12 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
         path = _connect(group, start, goal, rng) if group.edge_ok(start, start) and group.edge_ok(goal, goal) else None
         if path is None:  # (this group stays where the attempt left it)
             continue
-        home += 1
         timed = _timed(_shortcut(group, path, rng), speeds, dt_s).reshape(-1, len(part), 2)
+        if group.clearance(timed).min() < floor_mm:  # (the margin at every played sample, as solo moves keep it)
+            continue
         length = max(len(out), k0 + len(timed))
         out = np.concatenate([out, np.repeat(out[-1:], length - len(out), axis=0)])
         out[k0 : k0 + len(timed), members] = timed
         out[k0 + len(timed) :, members] = target[members]
+        home += 1
     return out if home else None

@@ -325,7 +325,8 @@ def _attempts(
         if groups and solo is not None and k == 1 and not at.all():
             # A candidate beside the attempts that follow (complete_leg keeps the shorter).
             grouped = group_moves(leg, joints, *solo)
-            if grouped is not None and at_targets(leg, grouped[-1]).all():
+            if (grouped is not None and at_targets(leg, grouped[-1]).all()
+                    and (time_limit_s is None or (len(grouped) - 1) * solo[1] <= time_limit_s)):
                 notes["grouped"] = grouped
         if at.all():  # (one piece: the planner's own array, not a copy of it: 200 MB at 50,000 positioners)
             return (pieces[0] if len(pieces) == 1 else np.concatenate(pieces)), k, True
