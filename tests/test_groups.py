@@ -8,8 +8,9 @@ import pytest
 
 import fiberplan as fp
 from fiberplan.geometry import default_safety_margin_mm
+from fiberplan.layout import neighbour_lists
 from fiberplan.planners.coordination import groups as groups_module
-from fiberplan.planners.coordination.groups import _Group, _neighbours, groups
+from fiberplan.planners.coordination.groups import _Group, groups
 from fiberplan.planners.coordination.legs import leg_scenario, trim
 from fiberplan.planners.coordination.settings import REVERSE_LEG
 from fiberplan.trajectory import Trajectory
@@ -59,7 +60,7 @@ def test_a_move_accepted_is_clear_at_every_instant_and_some_are_refused():
     moves that sweep over a neighbour are refused."""
     sc = fp.make_scenario("moons-capsules", 19, "random", 0)
     q = sc.start.copy()
-    nbrs = _neighbours(sc)
+    nbrs = neighbour_lists(sc.pairs, sc.n_positioners)[0]
     centre = int(np.argmax([len(n) for n in nbrs]))
     group = _Group(sc, q, [centre], nbrs, 0.05)
     lim = sc.instrument.limits_rad

@@ -40,6 +40,7 @@ import itertools
 import numpy as np
 
 from fiberplan.geometry import clearance_rows, motion_bound, point_extents
+from fiberplan.layout import neighbour_lists
 from fiberplan.scenario import Scenario
 
 RESOLUTION_MM = 0.3
@@ -57,14 +58,6 @@ SHORTCUTS = 400
 
 GOAL_BIAS = 0.1
 """Share of the samples that aim at the other tree's root."""
-
-
-def _neighbours(scenario: Scenario) -> list[np.ndarray]:
-    out: list[list[int]] = [[] for _ in range(scenario.n_positioners)]
-    for i, j in scenario.pairs.tolist():
-        out[i].append(j)
-        out[j].append(i)
-    return [np.array(sorted(n), dtype=np.int64) for n in out]
 
 
 class _Group:
@@ -191,7 +184,7 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
     short = np.flatnonzero(~np.all(end == target, axis=1) & ~leg.locked)
     if not len(short):
         return None
-    nbrs = _neighbours(leg)
+    nbrs = neighbour_lists(leg.pairs, leg.n_positioners)[0]
     inst = leg.instrument
     speeds = inst.speeds_rad_s
     rho = point_extents(inst)
