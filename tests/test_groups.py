@@ -98,11 +98,20 @@ def test_the_grouped_first_attempt_is_kept_where_the_attempts_after_it_are_longe
     plain = legs.complete_leg(fold, plan_leg, 2, **kwargs)
     grouped = legs.complete_leg(fold, plan_leg, 2, groups=True, **kwargs)
     expected = groups(fold, joints, floor, dt)
-    assert grouped.complete and not grouped.rescued
+    assert grouped.complete and not grouped.rescued and plain.grouped == ()
+    held = np.concatenate([joints, np.repeat(joints[-1:], len(expected) - len(joints), axis=0)])
+    moved = np.flatnonzero(np.any(expected != held, axis=(0, 2)))
+    assert {4, 24} <= set(moved.tolist())  # the stragglers, with the neighbours that made way
     if plain.complete:  # (the solo moves at the end may bring them home too: the shorter is kept)
         assert len(grouped.joints) == min(len(plain.joints), len(expected))
+        assert grouped.grouped == (tuple(moved.tolist()) if len(expected) < len(plain.joints) else ())
     else:
         np.testing.assert_array_equal(grouped.joints, expected)
+        assert grouped.grouped == tuple(moved.tolist())
+    from fiberplan.planners.coordination.layer import _leg_stats, _Piece
+
+    stats = _leg_stats(fold, [_Piece("direct", grouped.joints, list(range(61)), grouped.runs, 0.0, grouped=grouped.grouped)], dt)
+    assert stats["grouped_ids"] == sorted(int(fold.ids[i]) for i in grouped.grouped) and stats["n_grouped"] == len(grouped.grouped)
     report = fp.verify(fold, Trajectory(np.arange(len(grouped.joints)) * dt, grouped.joints))
     assert report.ok
 

@@ -71,6 +71,7 @@ class _Piece:
     first_samples: int = 0  # samples before restarts and overlap shortened it (0: not known)
     rescued: bool = False  # a leg of it needed the later fallback rounds (legs.Leg.rescued)
     through_datum: bool = False  # a leg of the two-leg plan (the stats' via_datum_ids count its movers)
+    grouped: tuple[int, ...] = ()  # positioners group moves brought home in a leg of it (legs.Leg.grouped)
 
 
 def _join(scenario: Scenario, pieces: list[_Piece], dt: float, rest: int = 0) -> Trajectory:
@@ -94,7 +95,7 @@ def _direct(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piec
     t0 = time.perf_counter()
     leg = complete_leg(scenario, plan_leg, opts.attempts, strict=False, restarts=opts.restarts, solo=opts.solo, tails=opts.tails, groups=opts.groups)
     return [_Piece("direct", leg.joints, np.flatnonzero(scenario.has_target).tolist(), leg.runs, time.perf_counter() - t0,
-                   first_samples=leg.first_samples, rescued=leg.rescued)]
+                   first_samples=leg.first_samples, rescued=leg.rescued, grouped=leg.grouped)]
 
 
 def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Piece] | None:
@@ -108,7 +109,7 @@ def _reverse(scenario: Scenario, plan_leg: PlanLeg, opts: _Options) -> list[_Pie
     if leg.complete:
         who = np.flatnonzero(scenario.has_target).tolist()
         return [_Piece("reverse (planned from the targets)", _reversed(leg.joints), who, leg.runs, time.perf_counter() - t0,
-                       first_samples=leg.first_samples, rescued=leg.rescued)]
+                       first_samples=leg.first_samples, rescued=leg.rescued, grouped=leg.grouped)]
     # The reversed plan stalled (an unfold under MOONS' zones, MOONS 500 seed 4: 5 of 500 short
     # after every round, the paired fold 1; the direct plan 9 short): the starts meet it where it stalled, with the
     # positioners it brought home holding there (the leg from the starts is then the stalled ones'
@@ -132,9 +133,11 @@ def _met_pieces(scenario: Scenario, opts: _Options, first: Leg, second: Leg, wal
     joints, shift = overlap_legs(scenario, ahead, played, opts.floor_mm, opts.coarse_steps, rest=opts.rest_steps) if opts.overlap else (None, 0)
     if joints is not None and shift > 0:
         return [_Piece(f"{names[0]}, then {names[1]}, overlapped by {shift} steps", joints, who, extra_runs + first.runs + second.runs, wall,
-                       overlap_steps=shift, first_samples=len(ahead) + len(played) - 1, rescued=True)]
-    return [_Piece(names[0], ahead, who, first.runs, wall, first_samples=first.first_samples, rescued=True),
-            _Piece(names[1], played, who, extra_runs + second.runs, 0.0, first_samples=second.first_samples, rescued=True)]
+                       overlap_steps=shift, first_samples=len(ahead) + len(played) - 1, rescued=True,
+                       grouped=first.grouped + second.grouped)]
+    return [_Piece(names[0], ahead, who, first.runs, wall, first_samples=first.first_samples, rescued=True, grouped=first.grouped),
+            _Piece(names[1], played, who, extra_runs + second.runs, 0.0, first_samples=second.first_samples, rescued=True,
+                   grouped=second.grouped)]
 
 
 def _met_from_the_goal(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, direct: _Piece) -> list[_Piece] | None:
@@ -254,12 +257,12 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     if joints is not None:
         return [_Piece(f"{label}fold to the datum, then unfold from it (planned from the targets), overlapped by {shift} steps{met}",
                        joints, who, first.runs + second.runs, first.wall_s + second.wall_s, overlap_steps=shift,
-                       first_samples=plain, rescued=rescued, through_datum=True)]
+                       first_samples=plain, rescued=rescued, through_datum=True, grouped=first.grouped + second.grouped)]
     return [
         _Piece(f"{label}fold to the datum{met}", fold_joints, who, first.runs, first.wall_s, first_samples=first.first_samples,
-               rescued=rescued, through_datum=True),
+               rescued=rescued, through_datum=True, grouped=first.grouped),
         _Piece(f"{label}unfold from the datum (planned from the targets){met}", unfold, who, second.runs, second.wall_s,
-               first_samples=second.first_samples, rescued=rescued, through_datum=True),
+               first_samples=second.first_samples, rescued=rescued, through_datum=True, grouped=second.grouped),
     ]
 
 
@@ -820,7 +823,8 @@ def coordinate(
 
 
 def _leg_stats(scenario: Scenario, pieces: list[_Piece], dt: float) -> dict[str, Any]:
-    """The legs (times, planner runs, positioners moved, plan time, overlap) and the ids carried through the datum."""
+    """The legs (times, planner runs, positioners moved, plan time, overlap), the ids carried through
+    the datum and the ids group moves brought home (``route_groups``)."""
     legs, t = [], 0.0
     for p in pieces:
         duration = (len(p.joints) - 1) * dt
@@ -828,8 +832,9 @@ def _leg_stats(scenario: Scenario, pieces: list[_Piece], dt: float) -> dict[str,
                      "plan_wall_s": p.wall_s, "overlap_s": p.overlap_steps * dt, "first_plan_s": ((p.first_samples or len(p.joints)) - 1) * dt})
         t += duration
     carried = sorted({int(scenario.ids[i]) for p in pieces if p.through_datum for i in p.moved})
+    grouped = sorted({int(scenario.ids[i]) for p in pieces for i in p.grouped})
     first = [(p.first_samples or len(p.joints)) - 1 for p in pieces]
     # first_plan_s: the duration as the legs were first planned, one after the other, before restarts
     # and overlap shortened them (through the datum: the plain two-leg plan).
-    return {"legs": legs, "via_datum_ids": carried, "n_via_datum": len(carried),
+    return {"legs": legs, "via_datum_ids": carried, "n_via_datum": len(carried), "grouped_ids": grouped, "n_grouped": len(grouped),
             "overlap_s": sum(p.overlap_steps for p in pieces) * dt, "first_plan_s": sum(first) * dt}

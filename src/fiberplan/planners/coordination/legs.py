@@ -44,6 +44,7 @@ class Leg:
     wall_s: float = 0.0
     rescued: bool = False
     untailed: np.ndarray | None = None  # the leg before a backward tail shortened it (None: no tail kept)
+    grouped: tuple[int, ...] = ()  # positioners (indices) group moves brought home, where their candidate was kept
 
     def ending_at(self, goal: np.ndarray, exact: np.ndarray) -> Leg:
         """This leg (and its untailed form) with every positioner sitting on ``goal`` set to
@@ -153,13 +154,16 @@ def complete_leg(
     positioners straggle has its tail planned backwards (:func:`tail_backwards`). With ``groups``
     (and ``solo``), the first attempt completed by group moves (:mod:`.groups`: its positioners
     left short go home with the neighbours in their way), where every group finds a way, is kept
-    instead of the further attempts' leg if that is incomplete or longer."""
+    instead of the further attempts' leg if that is incomplete or longer (``Leg.grouped`` names the
+    positioners they moved; a backward tail may then re-plan the leg's end)."""
     t0 = time.perf_counter()
     notes: dict[str, Any] = {}
     joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo, notes, groups)
-    grouped = notes.pop("grouped", None)
+    grouped, carried = notes.pop("grouped", (None, ()))
     if grouped is not None and (not complete or len(grouped) < len(joints)):
         joints, complete, notes["rescued"] = grouped, True, False
+    else:
+        carried = ()
     first = len(joints)
     # Restarts help a leg whose planner brought everyone home in one run, its stragglers late; a
     # leg that needed further attempts has stragglers that restarts leave stuck again (measured
@@ -173,7 +177,8 @@ def complete_leg(
         joints, more = tail_backwards(leg, joints, plan_leg, restarts)
         runs += more
         untailed = None if joints is before else before
-    return Leg(joints, runs, complete, first, time.perf_counter() - t0, rescued=notes.get("rescued", False), untailed=untailed)
+    return Leg(joints, runs, complete, first, time.perf_counter() - t0, rescued=notes.get("rescued", False), untailed=untailed,
+               grouped=carried)
 
 
 def shorten_leg(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: float, rounds: int = 2) -> tuple[np.ndarray, int]:
@@ -294,7 +299,8 @@ def _attempts(
     """The attempts of :func:`complete_leg`; ``notes["rescued"]`` is set when the rounds of
     :data:`FALLBACK_ROUNDS` went beyond the single fallback attempt of before (see :class:`Leg`);
     with ``groups``, ``notes["grouped"]`` holds the first attempt completed by group moves, where
-    every group found a way (a candidate: the attempts go on as without it)."""
+    every group found a way (a candidate: the attempts go on as without it), and the positioners
+    the group moves moved."""
     notes = {} if notes is None else notes
     if strict and leg.infeasible:  # a leg target that cannot be reached would break the joint between legs
         return leg.start[None].copy(), 0, False
@@ -327,7 +333,8 @@ def _attempts(
             grouped = group_moves(leg, joints, *solo)
             if (grouped is not None and at_targets(leg, grouped[-1]).all()
                     and (time_limit_s is None or (len(grouped) - 1) * solo[1] <= time_limit_s)):
-                notes["grouped"] = grouped
+                held = np.concatenate([joints, np.repeat(joints[-1:], len(grouped) - len(joints), axis=0)])
+                notes["grouped"] = (grouped, tuple(np.flatnonzero(np.any(grouped != held, axis=(0, 2))).tolist()))
         if at.all():  # (one piece: the planner's own array, not a copy of it: 200 MB at 50,000 positioners)
             return (pieces[0] if len(pieces) == 1 else np.concatenate(pieces)), k, True
         if k < attempts and int(at.sum()) > done_before:  # another attempt follows: it starts at the last arrival
