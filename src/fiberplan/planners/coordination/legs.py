@@ -331,10 +331,10 @@ def _attempts(
         if groups and solo is not None and k == 1 and not at.all():
             # A candidate beside the attempts that follow (complete_leg keeps the shorter).
             grouped = group_moves(leg, joints, *solo)
+            grouped = None if grouped is None else trim(grouped)  # (its stragglers may have moved last: the idle end goes)
             if (grouped is not None and at_targets(leg, grouped[-1]).all()
                     and (time_limit_s is None or (len(grouped) - 1) * solo[1] <= time_limit_s)):
-                held = np.concatenate([joints, np.repeat(joints[-1:], len(grouped) - len(joints), axis=0)])
-                notes["grouped"] = (grouped, tuple(np.flatnonzero(np.any(grouped != held, axis=(0, 2))).tolist()))
+                notes["grouped"] = (grouped, tuple(np.flatnonzero(_changed(joints, grouped)).tolist()))
         if at.all():  # (one piece: the planner's own array, not a copy of it: 200 MB at 50,000 positioners)
             return (pieces[0] if len(pieces) == 1 else np.concatenate(pieces)), k, True
         if k < attempts and int(at.sum()) > done_before:  # another attempt follows: it starts at the last arrival
@@ -485,6 +485,14 @@ def _until_last_arrival(leg: Scenario, joints: np.ndarray) -> np.ndarray:
     away = ~at[:, done]
     last_away = np.where(away.any(axis=0), len(joints) - 1 - np.argmax(away[::-1], axis=0), -1)
     return joints[: int(last_away.max()) + 2]
+
+
+def _changed(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Which positioners move differently in ``a`` and ``b`` ``(K, N, 2)``, each held at its end
+    to the longer one's length."""
+    k = max(len(a), len(b))
+    a, b = (np.concatenate([x, np.repeat(x[-1:], k - len(x), axis=0)]) for x in (a, b))
+    return np.any(a != b, axis=(0, 2))
 
 
 def trim(joints: np.ndarray) -> np.ndarray:
