@@ -80,6 +80,38 @@ def test_a_move_accepted_is_clear_at_every_instant_and_some_are_refused():
     assert accepted and refused
 
 
+def test_moves_of_a_pressed_pair_are_proved_clear_by_halving(monkeypatch):
+    """A positioner pressed 0.1 mm from a neighbour (as a stalled attempt leaves them): small moves
+    the sub-steps alone cannot prove clear are accepted by halving the intervals between them, and
+    each accepted move is clear at 2,000 instants; halving never refuses what the sub-steps accept."""
+    sc = fp.make_scenario("moons-capsules", 19, "random", 0)
+    nbrs = neighbour_lists(sc.pairs, sc.n_positioners)[0]
+    centre = int(np.argmax([len(n) for n in nbrs]))
+    group = _Group(sc, sc.start.copy(), [centre], nbrs, 0.07)
+    lim = sc.instrument.limits_rad
+    pressed = None
+    for alpha in np.linspace(lim[0, 0], lim[0, 1], 2000):  # swept round until a pair comes within 0.1-0.14 mm
+        x = np.array([alpha, sc.start[centre, 1]])
+        if 0.1 < group.clearance(x[None, None])[0].min() < 0.14:
+            pressed = x
+            break
+    assert pressed is not None
+    rng = np.random.default_rng(0)
+    only_halved = 0
+    for _ in range(200):
+        x1 = np.clip(pressed + rng.normal(0.0, 0.03, 2), lim[:, 0], lim[:, 1])
+        monkeypatch.setattr(groups_module, "BISECTIONS", 0)
+        plain = group.edge_ok(pressed, x1)
+        monkeypatch.setattr(groups_module, "BISECTIONS", 4)
+        halved = group.edge_ok(pressed, x1)
+        assert halved or not plain
+        if halved:
+            s = np.linspace(0.0, 1.0, 2000)[:, None]
+            assert group.clearance((pressed[None] * (1 - s) + x1[None] * s).reshape(-1, 1, 2)).min() > 0.0
+            only_halved += not plain
+    assert only_halved >= 10
+
+
 def test_the_grouped_first_attempt_is_kept_where_the_attempts_after_it_are_longer(stalled):
     """``complete_leg`` with ``groups``: the first attempt completed by group moves is kept when
     the further attempts leave the leg short or longer; without ``groups`` they are all there is."""

@@ -21,7 +21,7 @@ together, the neighbour steps aside while the straggler passes and then goes hom
   at their start (or goal), and an extension that is not clear is halved a few times before it is
   given up: a stalled attempt leaves its stragglers pressed together, and only small moves of a
   few members untangle them (MOONS 500 unfold seed 3: a group of five found no way in 10,000
-  extensions without these two, and finds one with them);
+  samples without these two, and finds one with them);
 - every straight move of the path is checked at sub-steps whose motion bound is at most
   :data:`RESOLUTION_MM`: each pair (two members, or a member and a neighbour held still) keeps
   the floor at the sub-steps, and the bound proves the pair clear between them (an interval
@@ -60,8 +60,8 @@ STEP_RAD = 0.15
 """Largest joint change (rad) of one extension of a tree."""
 
 ITERATIONS = 2000
-"""Extensions (of either tree) one group's search may make per member before it gives up (a
-group of five: 10,000)."""
+"""Samples one group's search may draw per member before it gives up (a group of five: 10,000);
+each extends the smaller tree (halved up to :data:`SHRINKS` times) and pulls the other after it."""
 
 SEARCHES = 2
 """Searches per group, each with its own random stream, before the group is given up (a search
@@ -281,18 +281,21 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
         k0 = int(later[-1]) + 1 if len(later) else 0  # its other neighbours hold from here on
         group = _Group(leg, out[k0], part, nbrs, floor_mm)
         start, goal = out[k0, members].ravel(), target[members].ravel()
-        path = None
+        timed = None
         if group.edge_ok(start, start) and group.edge_ok(goal, goal):
             for attempt in range(SEARCHES):
                 # (Each group's own random stream: its search does not depend on the groups before it.)
                 rng = np.random.default_rng((seed, attempt, *part))
                 path = _connect(group, start, goal, rng)
-                if path is not None:
+                if path is None:
+                    continue
+                timed = _timed(_shortcut(group, path, rng), speeds, dt_s).reshape(-1, len(part), 2)
+                # The margin at every played sample, as solo moves keep it (the check proves the
+                # moves clear between sub-steps, not at the margin): else the next search.
+                if group.clearance(timed).min() >= floor_mm:
                     break
-        if path is None:  # (this group stays where the attempt left it)
-            continue
-        timed = _timed(_shortcut(group, path, rng), speeds, dt_s).reshape(-1, len(part), 2)
-        if group.clearance(timed).min() < floor_mm:  # (the margin at every played sample, as solo moves keep it)
+                timed = None
+        if timed is None:  # (this group stays where the attempt left it)
             continue
         length = max(len(out), k0 + len(timed))
         out = np.concatenate([out, np.repeat(out[-1:], length - len(out), axis=0)])

@@ -71,7 +71,7 @@ class _Piece:
     first_samples: int = 0  # samples before restarts and overlap shortened it (0: not known)
     rescued: bool = False  # a leg of it needed the later fallback rounds (legs.Leg.rescued)
     through_datum: bool = False  # a leg of the two-leg plan (the stats' via_datum_ids count its movers)
-    grouped: tuple[int, ...] = ()  # positioners group moves brought home in a leg of it (legs.Leg.grouped)
+    grouped: tuple[int, ...] = ()  # positioners group moves moved in a leg of it (legs.Leg.grouped)
 
 
 def _join(scenario: Scenario, pieces: list[_Piece], dt: float, rest: int = 0) -> Trajectory:
@@ -824,7 +824,7 @@ def coordinate(
 
 def _leg_stats(scenario: Scenario, pieces: list[_Piece], dt: float) -> dict[str, Any]:
     """The legs (times, planner runs, positioners moved, plan time, overlap), the ids carried through
-    the datum and the ids group moves brought home (``route_groups``)."""
+    the datum and the ids group moves moved (``route_groups``: not counted in a partial retraction's legs)."""
     legs, t = [], 0.0
     for p in pieces:
         duration = (len(p.joints) - 1) * dt
