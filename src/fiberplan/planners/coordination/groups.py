@@ -68,7 +68,9 @@ SEARCHES = 2
 of MOONS 500 unfold seed 3's group of five finds a way in 7 of 10 streams)."""
 
 SHORTCUTS = 400
-"""Random shortcuts tried on a found path."""
+"""Random shortcuts tried on a found path (between two instants of it, not only its waypoints:
+on MOONS 500 unfold seed 2's groups, 11.1 against 16.0 s of motion for one, 0.5-5 s shorter for
+four of five)."""
 
 GOAL_BIAS = 0.1
 """Share of the samples that aim at the other tree's root."""
@@ -218,15 +220,30 @@ def _connect(group: _Group, start: np.ndarray, goal: np.ndarray, rng: np.random.
     return None
 
 
-def _shortcut(group: _Group, path: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    points = list(path)
+def _shortcut(group: _Group, path: np.ndarray, rng: np.random.Generator, speeds: np.ndarray) -> np.ndarray:
+    """``path`` shortened by :data:`SHORTCUTS` random shortcuts between two instants of it played
+    (each segment as fast as its slowest joint), not only between its waypoints: a shortcut
+    between two points inside segments ``i`` and ``j`` replaces what lies between them where that
+    straight move is clear (the parts of the two segments it keeps were clear already)."""
+    w = np.tile(speeds, path.shape[1] // 2)
+    points = np.asarray(path)
     for _ in range(SHORTCUTS):
-        if len(points) < 3:
+        seg = np.max(np.abs(np.diff(points, axis=0)) / w, axis=1)  # each segment's time
+        cum = np.concatenate([[0.0], np.cumsum(seg)])
+        if len(points) < 3 or cum[-1] <= 0.0:
             break
-        i, j = sorted(rng.choice(len(points), 2, replace=False).tolist())
-        if j - i >= 2 and group.edge_ok(points[i], points[j]):
-            points = points[: i + 1] + points[j:]
-    return np.array(points)
+        (i, a), (j, b) = (_at(points, seg, cum, t) for t in np.sort(rng.uniform(0.0, cum[-1], 2)))
+        if j > i and group.edge_ok(a, b):
+            points = np.concatenate([points[: i + 1], a[None], b[None], points[j + 1 :]])
+    keep = np.concatenate([[True], np.any(points[1:] != points[:-1], axis=1)])  # (no segment of zero length)
+    return points[keep]
+
+
+def _at(points: np.ndarray, seg: np.ndarray, cum: np.ndarray, t: float) -> tuple[int, np.ndarray]:
+    """The segment of ``points`` played at time ``t`` and the configuration there."""
+    k = min(int(np.searchsorted(cum, t, side="right")) - 1, len(seg) - 1)
+    f = (t - cum[k]) / seg[k] if seg[k] > 0.0 else 0.0
+    return k, points[k] * (1.0 - f) + points[k + 1] * f
 
 
 def _timed(path: np.ndarray, speeds: np.ndarray, dt_s: float) -> np.ndarray:
@@ -289,7 +306,7 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
                 path = _connect(group, start, goal, rng)
                 if path is None:
                     continue
-                timed = _timed(_shortcut(group, path, rng), speeds, dt_s).reshape(-1, len(part), 2)
+                timed = _timed(_shortcut(group, path, rng, speeds), speeds, dt_s).reshape(-1, len(part), 2)
                 # The margin at every played sample, as solo moves keep it (the check proves the
                 # moves clear between sub-steps, not at the margin): else the next search.
                 if group.clearance(timed).min() >= floor_mm:
