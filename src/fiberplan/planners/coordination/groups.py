@@ -9,7 +9,8 @@ own path, and a search of one around the other held still (:mod:`.solo`) finds n
 together, the neighbour steps aside while the straggler passes and then goes home. Here:
 
 - each positioner left short and the neighbours its straight joint move to its target crosses
-  (held where the attempt left them) form a group; groups that share a member are one;
+  (held where the attempt left them) form a group; groups that share a member are one; groups
+  that touch are first searched as one, up to :data:`MERGE_UP_TO` members;
 - a group starts at the sample after which none of its other neighbours moves (they hold from
   there on, as obstacles), from where its members stood at that sample; groups are planned one
   after the other, each in the trajectory as the ones before left it, so a group next to an
@@ -62,6 +63,11 @@ STEP_RAD = 0.15
 ITERATIONS = 2000
 """Samples one group's search may draw per member before it gives up (a group of five: 10,000);
 each extends the smaller tree (halved up to :data:`SHRINKS` times) and pulls the other after it."""
+
+MERGE_UP_TO = 5
+"""Groups that touch are first searched as one up to this many members together (MOONS 500
+unfold seed 3: a straggler next to a group of two, 9 s of motion after it; together 6.5 s less
+for the leg); larger groups find no way (MOONS 61 unfold seed 6: eight in 20,000 samples)."""
 
 SEARCHES = 2
 """Searches per group, each with its own random stream, before the group is given up (a search
@@ -262,14 +268,14 @@ def _timed(path: np.ndarray, speeds: np.ndarray, dt_s: float) -> np.ndarray:
 def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed: int = 0) -> np.ndarray | None:
     """``joints`` ``(K, N, 2)`` (an attempt of ``leg``) with the positioners it left short brought
     home by group moves, every group that finds a way (the others stay where the attempt left
-    them), or ``None`` if none does (or nobody is short)."""
+    them), or ``None`` if none does (or nobody is short). Groups that touch are searched as one
+    up to :data:`MERGE_UP_TO` members, else (or if that finds no way) one after the other."""
     target, end = leg.target, joints[-1]
     short = np.flatnonzero(~np.all(end == target, axis=1) & ~leg.locked)
     if not len(short):
         return None
     nbrs = neighbour_lists(leg.pairs, leg.n_positioners)[0]
     inst = leg.instrument
-    speeds = inst.speeds_rad_s
     rho = point_extents(inst)
     parts: list[set[int]] = []
     for i in short.tolist():
@@ -283,40 +289,66 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
             c = clearance_rows(inst, leg.base_xy[rows_i], leg.orient[rows_i], np.repeat(way, len(others), axis=0),
                                leg.base_xy[rows_j], leg.orient[rows_j], end[rows_j]).min(axis=1).reshape(steps, -1)
             part.update(others[c.min(axis=0) < floor_mm].tolist())
-        # Groups that share a member are one; groups that only touch go one after the other.
+        # Groups that share a member are one.
         for other in [p for p in parts if p & part]:
             parts.remove(other)
             part |= other
         parts.append(part)
+    # Groups that touch (a member of one is a neighbour of the other's) wait for each other; up
+    # to MERGE_UP_TO members together they are first searched as one, else one after the other.
+    units = [[p] for p in sorted(sorted(p) for p in parts)]
+    joined = True
+    while joined:
+        joined = False
+        for a, b in itertools.combinations(range(len(units)), 2):
+            in_a, in_b = set().union(*units[a]), set().union(*units[b])
+            touch = any(j in in_b for i in in_a for j in nbrs[i].tolist())
+            if touch and len(in_a | in_b) <= MERGE_UP_TO:
+                units[a] += units.pop(b)
+                joined = True
+                break
     out = joints
     home = 0
-    for part in sorted(sorted(p) for p in parts):
-        members = np.array(part, dtype=np.int64)
-        outer = np.setdiff1d(np.concatenate([nbrs[i] for i in part]), members)
-        moving = np.any(out[1:, outer] != out[:-1, outer], axis=(1, 2)) if len(outer) else np.zeros(0, dtype=bool)
-        later = np.flatnonzero(moving)
-        k0 = int(later[-1]) + 1 if len(later) else 0  # its other neighbours hold from here on
-        group = _Group(leg, out[k0], part, nbrs, floor_mm)
-        start, goal = out[k0, members].ravel(), target[members].ravel()
-        timed = None
-        if group.edge_ok(start, start) and group.edge_ok(goal, goal):
-            for attempt in range(SEARCHES):
-                # (Each group's own random stream: its search does not depend on the groups before it.)
-                rng = np.random.default_rng((seed, attempt, *part))
-                path = _connect(group, start, goal, rng)
-                if path is None:
-                    continue
-                timed = _timed(_shortcut(group, path, rng, speeds), speeds, dt_s).reshape(-1, len(part), 2)
-                # The margin at every played sample, as solo moves keep it (the check proves the
-                # moves clear between sub-steps, not at the margin): else the next search.
-                if group.clearance(timed).min() >= floor_mm:
-                    break
-                timed = None
-        if timed is None:  # (this group stays where the attempt left it)
-            continue
-        length = max(len(out), k0 + len(timed))
-        out = np.concatenate([out, np.repeat(out[-1:], length - len(out), axis=0)])
-        out[k0 : k0 + len(timed), members] = timed
-        out[k0 + len(timed) :, members] = target[members]
-        home += 1
+    for unit in units:
+        if len(unit) > 1:
+            moved = _move(leg, out, sorted(set().union(*unit)), nbrs, floor_mm, dt_s, seed)
+            if moved is not None:
+                out, home = moved, home + 1
+                continue
+        for part in unit:  # (one after the other: each starts once the ones before it are home)
+            moved = _move(leg, out, part, nbrs, floor_mm, dt_s, seed)
+            if moved is not None:
+                out, home = moved, home + 1
     return out if home else None
+
+
+def _move(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
+          seed: int) -> np.ndarray | None:
+    """``out`` with group ``part`` brought home from the sample after which its other neighbours
+    hold (:func:`groups`), or ``None`` if its searches find no way."""
+    speeds = leg.instrument.speeds_rad_s
+    members = np.array(part, dtype=np.int64)
+    outer = np.setdiff1d(np.concatenate([nbrs[i] for i in part]), members)
+    moving = np.any(out[1:, outer] != out[:-1, outer], axis=(1, 2)) if len(outer) else np.zeros(0, dtype=bool)
+    later = np.flatnonzero(moving)
+    k0 = int(later[-1]) + 1 if len(later) else 0  # its other neighbours hold from here on
+    group = _Group(leg, out[k0], part, nbrs, floor_mm)
+    start, goal = out[k0, members].ravel(), leg.target[members].ravel()
+    if not (group.edge_ok(start, start) and group.edge_ok(goal, goal)):
+        return None
+    for attempt in range(SEARCHES):
+        # (Each group's own random stream: its search does not depend on the groups before it.)
+        rng = np.random.default_rng((seed, attempt, *part))
+        path = _connect(group, start, goal, rng)
+        if path is None:
+            continue
+        timed = _timed(_shortcut(group, path, rng, speeds), speeds, dt_s).reshape(-1, len(part), 2)
+        # The margin at every played sample, as solo moves keep it (the check proves the moves
+        # clear between sub-steps, not at the margin): else the next search.
+        if group.clearance(timed).min() >= floor_mm:
+            length = max(len(out), k0 + len(timed))
+            out = np.concatenate([out, np.repeat(out[-1:], length - len(out), axis=0)])
+            out[k0 : k0 + len(timed), members] = timed
+            out[k0 + len(timed) :, members] = leg.target[members]
+            return out
+    return None

@@ -44,7 +44,7 @@ class Leg:
     wall_s: float = 0.0
     rescued: bool = False
     untailed: np.ndarray | None = None  # the leg before a backward tail shortened it (None: no tail kept)
-    grouped: tuple[int, ...] = ()  # positioners (indices) group moves moved in ``joints`` (the stragglers and those that made way)
+    grouped: tuple[int, ...] = ()  # positioners (indices) group moves moved (the stragglers and those that made way)
 
     def ending_at(self, goal: np.ndarray, exact: np.ndarray) -> Leg:
         """This leg (and its untailed form) with every positioner sitting on ``goal`` set to
@@ -155,7 +155,7 @@ def complete_leg(
     (and ``solo``), the first attempt completed by group moves (:mod:`.groups`: its positioners
     left short go home with the neighbours in their way), where every group finds a way, is kept
     instead of the further attempts' leg if that is incomplete or longer (``Leg.grouped`` names the
-    positioners they moved, unless a restart or backward tail then re-planned the leg's end)."""
+    positioners they moved, also where a restart or backward tail then re-planned the leg's end)."""
     t0 = time.perf_counter()
     notes: dict[str, Any] = {}
     joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo, notes, groups)
@@ -177,9 +177,10 @@ def complete_leg(
         joints, more = tail_backwards(leg, joints, plan_leg, restarts)
         runs += more
         untailed = None if joints is before else before
-    # (The ids name the group moves of the leg returned: none where a restart or tail re-planned its end.)
+    # (The ids name the group moves of the kept candidate, also where a restart or tail then re-planned
+    # its end: a grouped leg's stragglers arrive late, and tails follow such legs.)
     return Leg(joints, runs, complete, first, time.perf_counter() - t0, rescued=notes.get("rescued", False), untailed=untailed,
-               grouped=carried if joints is grouped else ())
+               grouped=carried)
 
 
 def shorten_leg(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: float, rounds: int = 2) -> tuple[np.ndarray, int]:
