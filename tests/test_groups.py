@@ -46,11 +46,23 @@ def test_group_moves_bring_a_stalled_fold_home_clear(stalled):
     assert {4, 24} <= set(changed.tolist()) and len(changed) <= 12
     # Seeded: the same leg gives the same moves.
     np.testing.assert_array_equal(groups(fold, joints, floor, dt), out)
+    # Some group starts while its other neighbours still move (an early start): a member moves
+    # otherwise than planned before the last sample at which a neighbour outside its group moves.
+    nbrs = neighbour_lists(fold.pairs, fold.n_positioners)[0]
+    differs = np.any(out[: len(joints)] != joints, axis=2)  # (K, N)
+    early = False
+    for i in changed.tolist():
+        outer = np.setdiff1d(nbrs[i], changed)
+        moves = np.flatnonzero(np.any(planned[1:, outer] != planned[:-1, outer], axis=(1, 2)))
+        first = np.flatnonzero(differs[:, i])
+        early |= bool(len(moves) and len(first) and first[0] < moves[-1])
+    assert early
 
 
 def test_no_way_means_no_group_moves(stalled, monkeypatch):
     fold, joints, dt = stalled
-    monkeypatch.setattr(groups_module, "ITERATIONS", 0)  # a search that gives up at once
+    monkeypatch.setattr(groups_module, "ITERATIONS", 0)  # searches that give up at once
+    monkeypatch.setattr(groups_module, "EARLY_ITERATIONS", 0)
     assert groups(fold, joints, default_safety_margin_mm(fold.instrument), dt) is None
     assert groups(fold, np.repeat(fold.target[None], 3, axis=0), 0.05, dt) is None  # nobody short
 
@@ -110,6 +122,79 @@ def test_moves_of_a_pressed_pair_are_proved_clear_by_halving(monkeypatch):
             assert group.clearance((pressed[None] * (1 - s) + x1[None] * s).reshape(-1, 1, 2)).min() > 0.0
             only_halved += not plain
     assert only_halved >= 10
+
+
+def test_intervals_among_moving_neighbours_accepted_are_clear_at_every_instant():
+    """``played_ok``: a member and its neighbours each moving straight over an interval; the
+    intervals accepted keep every pair clear at 2,000 instants, and some are refused."""
+    sc = fp.make_scenario("moons-capsules", 19, "random", 0)
+    nbrs = neighbour_lists(sc.pairs, sc.n_positioners)[0]
+    centre = int(np.argmax([len(n) for n in nbrs]))
+    group = _Group(sc, sc.start.copy(), [centre], nbrs, 0.05)
+    outer = group.outer[:, 1]
+    lim = sc.instrument.limits_rad
+    rng = np.random.default_rng(2)
+    m = 400
+    x0 = np.clip(sc.start[centre] + rng.normal(0.0, 0.6, (m, 2)), lim[:, 0], lim[:, 1])[:, None]
+    x1 = np.clip(x0 + rng.normal(0.0, 0.05, (m, 1, 2)), lim[:, 0], lim[:, 1])
+    q0 = np.clip(sc.start[outer][None] + rng.normal(0.0, 0.3, (m, len(outer), 2)), lim[:, 0], lim[:, 1])
+    q1 = np.clip(q0 + rng.normal(0.0, 0.05, q0.shape), lim[:, 0], lim[:, 1])
+    # Half the rows: the member holds while its neighbours sweep far (only their motion can close a pair).
+    x1[m // 2 :] = x0[m // 2 :]
+    q1[m // 2 :] = np.clip(q0[m // 2 :] + rng.normal(0.0, 0.5, q0[m // 2 :].shape), lim[:, 0], lim[:, 1])
+    ok = group.played_ok(x0, x1, q0, q1)
+    s = np.linspace(0.0, 1.0, 2000)[:, None, None]
+    for r in np.flatnonzero(ok):
+        dense = group.clearance(x0[r] * (1 - s) + x1[r] * s, q0[r] * (1 - s) + q1[r] * s)
+        assert dense.min() > 0.0
+    ends = np.minimum(group.clearance(x0, q0).min(axis=1), group.clearance(x1, q1).min(axis=1))
+    assert ok.sum() >= 20 and (~ok & (ends >= 0.05)).sum() >= 1  # (refused with both ends at the floor: between them)
+
+
+def test_a_tuned_path_waits_for_a_neighbour_in_its_way_and_keeps_the_speed_limits():
+    """``_tune``: a member's straight path, a neighbour parked across it for 1 s, then going home:
+    the member waits, never faster than its joints allow, clear at every sample, home at the end.
+    With the neighbour parked there for good: no play."""
+    from fiberplan.planners.coordination.groups import _tune
+
+    sc = fp.make_scenario("moons-capsules", 7, "random", 0)
+    nbrs = neighbour_lists(sc.pairs, sc.n_positioners)[0]
+    dt, floor, lim, speeds = 0.05, 0.05, sc.instrument.limits_rad, sc.instrument.speeds_rad_s
+    rng = np.random.default_rng(0)
+    i = int(np.argmax([len(n) for n in nbrs]))
+    group = _Group(sc, sc.start.copy(), [i], nbrs, floor)
+    outer = group.outer[:, 1]
+    case = None
+    for _ in range(5000):
+        a, b = (rng.uniform(lim[:, 0], lim[:, 1]) for _ in range(2))
+        j = int(rng.choice(nbrs[i]))
+        block = rng.uniform(lim[:, 0], lim[:, 1])
+        if not group.edge_ok(a, b):  # (clear among the neighbours at their starts)
+            continue
+        field_ = np.repeat(sc.start[None], 20 + 40 + 100, axis=0)
+        field_[:20, j] = block
+        field_[20:60, j] = block[None] + (sc.start[j] - block)[None] * np.linspace(0.0, 1.0, 40)[:, None]
+        waiting = np.repeat(a.reshape(1, 1, 2), len(field_) - 1, axis=0)
+        blocked = _Group(sc, field_[0], [i], nbrs, floor)
+        if blocked.edge_ok(a, b) or not group.played_ok(waiting, waiting, field_[:-1, outer], field_[1:, outer]).all():
+            continue  # (the neighbour must cross the path, and leave the member clear where it waits)
+        case = a, b, field_
+        break
+    assert case is not None
+    a, b, field_ = case
+    played = _tune(group, np.stack([a, b]), field_, 0, dt)
+    assert played is not None
+    np.testing.assert_array_equal(played[0, 0], a)
+    np.testing.assert_array_equal(played[-1, 0], b)
+    assert np.all(np.abs(np.diff(played[:, 0], axis=0)) <= speeds * dt * (1 + 1e-9))
+    held = np.concatenate([played, np.repeat(played[-1:], max(0, len(field_) - len(played)), axis=0)])
+    on = field_[np.minimum(np.arange(len(held)), len(field_) - 1)][:, outer]
+    assert group.clearance(held, on).min() >= floor
+    straight = int(np.ceil(np.max(np.abs(b - a) / speeds) / dt))
+    assert len(played) - 1 > straight  # it waited (or went slower) for the neighbour
+    parked = field_.copy()
+    parked[:] = field_[0]
+    assert _tune(group, np.stack([a, b]), parked, 0, dt) is None
 
 
 def test_the_grouped_first_attempt_is_kept_where_the_attempts_after_it_are_longer(stalled):

@@ -112,15 +112,17 @@ class _Group:
         lim = leg.instrument.limits_rad
         self.lo, self.hi = np.tile(lim[:, 0], len(members)), np.tile(lim[:, 1], len(members))
 
-    def clearance(self, x: np.ndarray) -> np.ndarray:
-        """``(M, P)`` clearances of the group's pairs (inner, then outer) at configurations ``x`` ``(M, g, 2)``."""
+    def clearance(self, x: np.ndarray, q_outer: np.ndarray | None = None) -> np.ndarray:
+        """``(M, P)`` clearances of the group's pairs (inner, then outer) at configurations ``x``
+        ``(M, g, 2)``, the outer neighbours where they hold or, given, at ``q_outer`` ``(M, len(outer), 2)``."""
         leg, m = self.leg, len(x)
         a, b = self.inner[:, 0], self.inner[:, 1]
         o, j = self.outer[:, 0], self.outer[:, 1]
         ii = np.concatenate([self.members[a], self.members[o]])
         jj = np.concatenate([self.members[b], j])
         qi = np.concatenate([x[:, a], x[:, o]], axis=1).reshape(-1, 2)
-        qj = np.concatenate([x[:, b], np.broadcast_to(self.q_outer, (m, len(j), 2))], axis=1).reshape(-1, 2)
+        q_outer = np.broadcast_to(self.q_outer, (m, len(j), 2)) if q_outer is None else q_outer
+        qj = np.concatenate([x[:, b], q_outer], axis=1).reshape(-1, 2)
         ii, jj = np.tile(ii, m), np.tile(jj, m)
         c = clearance_rows(leg.instrument, leg.base_xy[ii], leg.orient[ii], qi, leg.base_xy[jj], leg.orient[jj], qj)
         return c.min(axis=1).reshape(m, -1)
@@ -157,15 +159,47 @@ class _Group:
             c_lo, c_hi = np.concatenate([c_lo, c_mid]), np.concatenate([c_mid, c_hi])
         return False  # (not reached)
 
+    def played_ok(self, x0: np.ndarray, x1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+        """Which of ``M`` sample intervals keep every pair at the floor at both ends and clear
+        between them, the members moving straight from ``x0`` to ``x1`` ``(M, g, 2)`` while the outer
+        neighbours move straight from ``q0`` to ``q1`` ``(M, len(outer), 2)`` (as the verifier plays
+        samples): ``(M,)`` bools. A pair's motion bound is the sum of both its positioners' (a
+        neighbour moves too); an interval it does not prove clear is halved, up to
+        :data:`BISECTIONS` times, as in :meth:`edge_ok`."""
+        c0, c1 = self.clearance(x0, q0), self.clearance(x1, q1)
+        good = (c0.min(axis=1) >= self.floor) & (c1.min(axis=1) >= self.floor)
+        mx = motion_bound(self.rho, np.abs(x1 - x0))  # (M, g)
+        mq = motion_bound(self.rho, np.abs(q1 - q0))  # (M, len(outer))
+        bound = np.concatenate([mx[:, self.inner[:, 0]] + mx[:, self.inner[:, 1]], mx[:, self.outer[:, 0]] + mq], axis=1)
+        rows = np.arange(len(x0))
+        lo, hi, c_lo, c_hi = np.zeros(len(x0)), np.ones(len(x0)), c0, c1
+        for depth in range(BISECTIONS + 1):
+            open_ = good[rows] & ~np.all(0.5 * (c_lo + c_hi - (hi - lo)[:, None] * bound[rows]) > 0.0, axis=1)
+            if not open_.any():
+                break
+            if depth == BISECTIONS:
+                good[rows[open_]] = False
+                break
+            rows, lo, hi, c_lo, c_hi = rows[open_], lo[open_], hi[open_], c_lo[open_], c_hi[open_]
+            mid = 0.5 * (lo + hi)
+            f = mid[:, None, None]
+            c_mid = self.clearance(x0[rows] * (1.0 - f) + x1[rows] * f, q0[rows] * (1.0 - f) + q1[rows] * f)
+            good[rows[c_mid.min(axis=1) < self.floor]] = False
+            rows, lo, hi = np.concatenate([rows, rows]), np.concatenate([lo, mid]), np.concatenate([mid, hi])
+            c_lo, c_hi = np.concatenate([c_lo, c_mid]), np.concatenate([c_mid, c_hi])
+        return good
+
     def _along(self, x0: np.ndarray, x1: np.ndarray, s: np.ndarray) -> np.ndarray:
         """Configurations ``(len(s), g, 2)`` at fractions ``s`` of the straight move ``x0 -> x1``."""
         return (x0[None] * (1.0 - s[:, None]) + x1[None] * s[:, None]).reshape(len(s), -1, 2)
 
 
-def _connect(group: _Group, start: np.ndarray, goal: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
-    """RRT-Connect between ``start`` and ``goal`` (flat): waypoints ``(W, 2g)`` or ``None``. The
-    smaller tree is the one extended towards each sample (the balanced form of Kuffner and
-    LaValle's alternation), the other then pulled towards the new node."""
+def _connect(group: _Group, start: np.ndarray, goal: np.ndarray, rng: np.random.Generator,
+             iterations: int | None = None) -> np.ndarray | None:
+    """RRT-Connect between ``start`` and ``goal`` (flat): waypoints ``(W, 2g)`` or ``None``, after
+    at most ``iterations`` (default :data:`ITERATIONS`) samples per member. The smaller tree is the
+    one extended towards each sample (the balanced form of Kuffner and LaValle's alternation), the
+    other then pulled towards the new node."""
     trees = [([start], [-1]), ([goal], [-1])]
     swapped = False
 
@@ -208,7 +242,7 @@ def _connect(group: _Group, start: np.ndarray, goal: np.ndarray, rng: np.random.
         x[drawn] = rng.uniform(lo[drawn], hi[drawn])
         return x.ravel()
 
-    for _ in range(ITERATIONS * g):
+    for _ in range((ITERATIONS if iterations is None else iterations) * g):
         a, b = trees
         x = b[0][0] if rng.random() < GOAL_BIAS else sample()
         k, _ = extend(a, x)
@@ -324,14 +358,19 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
 
 def _move(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
           seed: int) -> np.ndarray | None:
-    """``out`` with group ``part`` brought home from the sample after which its other neighbours
-    hold (:func:`groups`), or ``None`` if its searches find no way."""
+    """``out`` with group ``part`` brought home (:func:`groups`): from the earliest start that
+    :func:`_early` finds, else from the sample after which its other neighbours hold; ``None``
+    if its searches find no way."""
     speeds = leg.instrument.speeds_rad_s
     members = np.array(part, dtype=np.int64)
     outer = np.setdiff1d(np.concatenate([nbrs[i] for i in part]), members)
     moving = np.any(out[1:, outer] != out[:-1, outer], axis=(1, 2)) if len(outer) else np.zeros(0, dtype=bool)
     later = np.flatnonzero(moving)
     k0 = int(later[-1]) + 1 if len(later) else 0  # its other neighbours hold from here on
+    early = _early(leg, out, part, nbrs, floor_mm, dt_s, seed, k0)
+    if early is not None:
+        ks, played = early
+        return _placed(leg, out, members, ks, played)
     group = _Group(leg, out[k0], part, nbrs, floor_mm)
     start, goal = out[k0, members].ravel(), leg.target[members].ravel()
     if not (group.edge_ok(start, start) and group.edge_ok(goal, goal)):
@@ -346,9 +385,99 @@ def _move(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray
         # The margin at every played sample, as solo moves keep it (the check proves the moves
         # clear between sub-steps, not at the margin): else the next search.
         if group.clearance(timed).min() >= floor_mm:
-            length = max(len(out), k0 + len(timed))
-            out = np.concatenate([out, np.repeat(out[-1:], length - len(out), axis=0)])
-            out[k0 : k0 + len(timed), members] = timed
-            out[k0 + len(timed) :, members] = leg.target[members]
-            return out
+            return _placed(leg, out, members, k0, timed)
     return None
+
+
+def _placed(leg: Scenario, out: np.ndarray, members: np.ndarray, k: int, played: np.ndarray) -> np.ndarray:
+    """``out`` (lengthened if need be) with ``members`` playing ``played`` ``(M, g, 2)`` from sample
+    ``k`` on, then holding at their targets."""
+    length = max(len(out), k + len(played))
+    out = np.concatenate([out, np.repeat(out[-1:], length - len(out), axis=0)])
+    out[k : k + len(played), members] = played
+    out[k + len(played) :, members] = leg.target[members]
+    return out
+
+
+EARLY_STEP_S = 1.0
+"""Spacing (s) of the start times a group tries before its other neighbours hold (:func:`_early`)."""
+
+EARLY_ITERATIONS = 500
+"""Samples per member of the search from one early start (:data:`ITERATIONS` for the last start)."""
+
+
+def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
+           seed: int, k0: int) -> tuple[int, np.ndarray] | None:
+    """Group ``part`` brought home starting before sample ``k0`` (after which its other
+    neighbours hold), while they still move: the first of the starts ``0, EARLY_STEP_S, ...``
+    before ``k0`` from which it works, as ``(start sample, the members' samples (M, g, 2))``, or
+    ``None``.
+
+    From each start, the members' configuration there: a path is searched among the neighbours
+    where they will hold (:func:`_connect`, :data:`EARLY_ITERATIONS` samples per member), then
+    played along the neighbours' own motion by :func:`_tune`. (A stalled attempt's stragglers
+    are those with the longest moves, blocked from the start: MOONS 500 unfold seed 0's straggler
+    groups start 5-9 s earlier so, and end 5-8 s earlier.)"""
+    members = np.array(part, dtype=np.int64)
+    group = _Group(leg, out[-1], part, nbrs, floor_mm)  # (the neighbours where they hold)
+    for ks in range(0, k0, max(1, round(EARLY_STEP_S / dt_s))):
+        start, goal = out[ks, members].ravel(), leg.target[members].ravel()
+        if not (group.edge_ok(start, start) and group.edge_ok(goal, goal)):
+            continue
+        rng = np.random.default_rng((seed, SEARCHES, ks, *part))
+        path = _connect(group, start, goal, rng, EARLY_ITERATIONS)
+        if path is None:
+            continue
+        played = _tune(group, _shortcut(group, path, rng, leg.instrument.speeds_rad_s), out, ks, dt_s)
+        if played is not None:
+            return ks, played
+    return None
+
+
+TUNE_STEPS = (1.0, 0.5, 0.25, 0.0)
+"""Fractions of a full-speed step along the path tried at each sample by :func:`_tune` (0: wait)."""
+
+
+def _tune(group: _Group, path: np.ndarray, out: np.ndarray, ks: int, dt_s: float) -> np.ndarray | None:
+    """``path`` (flat waypoints, each segment as fast as its slowest joint allows) played from
+    sample ``ks`` among the outer neighbours moving as in ``out`` (velocity tuning along a fixed
+    path, Kant and Zucker 1986): at each sample the members go as far along the path as
+    :data:`TUNE_STEPS` allows with every pair clear (:meth:`_Group.played_ok`), waiting where
+    nothing does, then hold at their targets while the neighbours go on. Samples ``(M, g, 2)``
+    from ``ks`` on, or ``None`` where even waiting is not clear (or the neighbours hold and the
+    path is still blocked)."""
+    speeds = group.leg.instrument.speeds_rad_s
+    w = np.tile(speeds, path.shape[1] // 2)
+    seg = np.max(np.abs(np.diff(path, axis=0)) / w, axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    total, last = float(cum[-1]), len(out) - 1
+    field = out[:, group.outer[:, 1]]  # (K, P_outer, 2): the outer neighbours, sample by sample
+    g = len(group.members)
+
+    def at(s: float) -> np.ndarray:
+        return path[-1] if s >= total else _at(path, seg, cum, s)[1]
+
+    s, k, x = 0.0, ks, path[0]
+    samples = [x]
+    budget = ks + 4 * int(np.ceil(total / dt_s)) + len(out)  # (a path the neighbours block for good)
+    while s < total:
+        if k >= budget:
+            return None
+        q0, q1 = field[min(k, last)][None], field[min(k + 1, last)][None]
+        for frac in TUNE_STEPS:
+            s1 = min(s + frac * dt_s, total)
+            x1 = at(s1)
+            if group.played_ok(x.reshape(1, g, 2), x1.reshape(1, g, 2), q0, q1)[0]:
+                break
+        else:
+            return None
+        if frac == 0.0 and k >= last:  # the neighbours hold and the path stays blocked
+            return None
+        s, k, x = s1, k + 1, x1
+        samples.append(x)
+    # Home: the members hold at their targets while the neighbours go on.
+    if k < last:
+        hold = np.broadcast_to(x.reshape(1, g, 2), (last - k, g, 2))
+        if not group.played_ok(hold, hold, field[k:last], field[k + 1 : last + 1]).all():
+            return None
+    return np.array(samples).reshape(-1, g, 2)
