@@ -11,10 +11,11 @@ together, the neighbour steps aside while the straggler passes and then goes hom
 - each positioner left short and the neighbours its straight joint move to its target crosses
   (held where the attempt left them) form a group; groups that share a member are one; groups
   that touch are first searched as one, up to :data:`MERGE_UP_TO` members;
-- a group starts at the sample after which none of its other neighbours moves (they hold from
-  there on, as obstacles), from where its members stood at that sample; groups are planned one
-  after the other, each in the trajectory as the ones before left it, so a group next to an
-  earlier one starts once that one is home;
+- a group starts as early as it can (:func:`_early`): at 0, 1, 2, ... s, from where its members
+  stand then, with a path found among its other neighbours where they will hold and played
+  along their motion (velocity tuning, :func:`_tune`); else at the sample after which none of
+  its other neighbours moves (they hold from there on, as obstacles). Groups are planned one
+  after the other, each in the trajectory as the ones before left it;
 - a bidirectional rapidly-exploring random tree (RRT-Connect, Kuffner and LaValle 2000) in the
   group's joint angles together, between that configuration and the targets, inside the hard
   stops, joins the two by straight joint moves; random shortcuts then shorten the path. Its
@@ -108,6 +109,9 @@ class _Group:
         self.inner = np.array(inner, dtype=np.int64).reshape(-1, 2)
         self.outer = np.array(outer, dtype=np.int64).reshape(-1, 2)
         self.q_outer = q[self.outer[:, 1]]
+        self._i = np.concatenate([self.members[self.inner[:, 0]], self.members[self.outer[:, 0]]])
+        self._j = np.concatenate([self.members[self.inner[:, 1]], self.outer[:, 1]])
+        self._rows: dict[int, tuple[np.ndarray, ...]] = {}  # M -> the pairs' bases and orientations, M times
         self.rho = point_extents(leg.instrument)
         lim = leg.instrument.limits_rad
         self.lo, self.hi = np.tile(lim[:, 0], len(members)), np.tile(lim[:, 1], len(members))
@@ -117,14 +121,16 @@ class _Group:
         ``(M, g, 2)``, the outer neighbours where they hold or, given, at ``q_outer`` ``(M, len(outer), 2)``."""
         leg, m = self.leg, len(x)
         a, b = self.inner[:, 0], self.inner[:, 1]
-        o, j = self.outer[:, 0], self.outer[:, 1]
-        ii = np.concatenate([self.members[a], self.members[o]])
-        jj = np.concatenate([self.members[b], j])
+        o = self.outer[:, 0]
         qi = np.concatenate([x[:, a], x[:, o]], axis=1).reshape(-1, 2)
-        q_outer = np.broadcast_to(self.q_outer, (m, len(j), 2)) if q_outer is None else q_outer
+        q_outer = np.broadcast_to(self.q_outer, (m, len(o), 2)) if q_outer is None else q_outer
         qj = np.concatenate([x[:, b], q_outer], axis=1).reshape(-1, 2)
-        ii, jj = np.tile(ii, m), np.tile(jj, m)
-        c = clearance_rows(leg.instrument, leg.base_xy[ii], leg.orient[ii], qi, leg.base_xy[jj], leg.orient[jj], qj)
+        rows = self._rows.get(m)
+        if rows is None:  # (a search asks for a few sizes thousands of times)
+            ii, jj = np.tile(self._i, m), np.tile(self._j, m)
+            rows = self._rows[m] = (leg.base_xy[ii], leg.orient[ii], leg.base_xy[jj], leg.orient[jj])
+        base_i, orient_i, base_j, orient_j = rows
+        c = clearance_rows(leg.instrument, base_i, orient_i, qi, base_j, orient_j, qj)
         return c.min(axis=1).reshape(m, -1)
 
     def edge_ok(self, x0: np.ndarray, x1: np.ndarray) -> bool:
@@ -133,13 +139,28 @@ class _Group:
         :data:`RESOLUTION_MM` of motion apart; an interval between two whose clearances do not
         prove it clear is halved, up to :data:`BISECTIONS` times (pairs near the floor: a stalled
         attempt leaves its stragglers pressed together, 0.12 mm apart on MOONS 500 unfold seed 3)."""
-        d = np.abs(x1 - x0).reshape(-1, 2)
-        moved = motion_bound(self.rho, d)  # (g,) over the whole move
-        k = max(1, int(np.ceil(moved.max() / RESOLUTION_MM)))
-        s = np.linspace(0.0, 1.0, k + 1)
-        c = self.clearance(self._along(x0, x1, s))  # (k + 1, P)
-        if np.any(c < self.floor):
-            return False
+        return self.first_ok(x0, [x1]) == 0
+
+    def first_ok(self, x0: np.ndarray, ends: list[np.ndarray]) -> int | None:
+        """The first of ``ends`` to which :meth:`edge_ok` accepts the straight move from ``x0``
+        (``None``: none), each decided exactly as :meth:`edge_ok` decides it, their sub-steps'
+        clearances measured in one call (a tree's extension and its halvings)."""
+        moves = []
+        for x1 in ends:
+            moved = motion_bound(self.rho, np.abs(x1 - x0).reshape(-1, 2))  # (g,) over the whole move
+            s = np.linspace(0.0, 1.0, max(1, int(np.ceil(moved.max() / RESOLUTION_MM))) + 1)
+            moves.append((x1, moved, s, self._along(x0, x1, s)))
+        c_all = self.clearance(np.concatenate([m[3] for m in moves]))
+        at = 0
+        for n, (x1, moved, s, _) in enumerate(moves):
+            c, at = c_all[at : at + len(s)], at + len(s)  # (k + 1, P)
+            if not np.any(c < self.floor) and self._proved(x0, x1, moved, s, c):
+                return n
+        return None
+
+    def _proved(self, x0: np.ndarray, x1: np.ndarray, moved: np.ndarray, s: np.ndarray, c: np.ndarray) -> bool:
+        """Whether the clearances ``c`` at the sub-steps ``s`` of the move ``x0 -> x1`` (each at the
+        floor) prove every pair clear between them, halving the intervals they do not prove."""
         # Each pair's motion bound over the whole move (the sum of its members'; an outer neighbour holds).
         bound = np.concatenate([moved[self.inner[:, 0]] + moved[self.inner[:, 1]], moved[self.outer[:, 0]]])
         lo, hi, c_lo, c_hi = s[:-1], s[1:], c[:-1], c[1:]
@@ -209,14 +230,15 @@ def _connect(group: _Group, start: np.ndarray, goal: np.ndarray, rng: np.random.
         d = x - nodes[near]
         n = float(np.abs(d).max())
         new = x if n <= STEP_RAD else nodes[near] + d * (STEP_RAD / n)
-        reached = n <= STEP_RAD
-        for _ in range(SHRINKS + 1):
-            if group.edge_ok(nodes[near], new):
-                nodes.append(new)
-                parents.append(near)
-                return len(nodes) - 1, reached
-            new, reached = nodes[near] + (new - nodes[near]) * 0.5, False
-        return None, False
+        ends = [new]
+        for _ in range(SHRINKS):  # (halved where not clear)
+            ends.append(nodes[near] + (ends[-1] - nodes[near]) * 0.5)
+        first = group.first_ok(nodes[near], ends)
+        if first is None:
+            return None, False
+        nodes.append(ends[first])
+        parents.append(near)
+        return len(nodes) - 1, n <= STEP_RAD and first == 0
 
     def chain(tree: tuple[list[np.ndarray], list[int]], k: int) -> list[np.ndarray]:
         nodes, parents = tree
