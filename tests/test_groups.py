@@ -29,10 +29,17 @@ def stalled():
     return fold, joints, float(result.settings["dt_s"])
 
 
-def test_group_moves_bring_a_stalled_fold_home_clear(stalled):
+@pytest.fixture(scope="module")
+def brought_home(stalled):
+    """The stalled attempt with its groups brought home (one search shared by the tests)."""
+    fold, joints, dt = stalled
+    return groups(fold, joints, default_safety_margin_mm(fold.instrument), dt)
+
+
+def test_group_moves_bring_a_stalled_fold_home_clear(stalled, brought_home):
     fold, joints, dt = stalled
     floor = default_safety_margin_mm(fold.instrument)
-    out = groups(fold, joints, floor, dt)
+    out = brought_home
     assert out is not None
     np.testing.assert_array_equal(out[0], joints[0])
     np.testing.assert_array_equal(out[-1], fold.target)  # every positioner exactly on its target
@@ -197,7 +204,7 @@ def test_a_tuned_path_waits_for_a_neighbour_in_its_way_and_keeps_the_speed_limit
     assert _tune(group, np.stack([a, b]), parked, 0, dt) is None
 
 
-def test_the_grouped_first_attempt_is_kept_where_the_attempts_after_it_are_longer(stalled):
+def test_the_grouped_first_attempt_is_kept_where_the_attempts_after_it_are_longer(stalled, brought_home):
     """``complete_leg`` with ``groups``: the first attempt completed by group moves is kept when
     the further attempts leave the leg short or longer; without ``groups`` they are all there is."""
     import types
@@ -214,7 +221,7 @@ def test_the_grouped_first_attempt_is_kept_where_the_attempts_after_it_are_longe
     kwargs = {"unblock": False, "strict": False, "solo": (floor, dt)}
     plain = legs.complete_leg(fold, plan_leg, 2, **kwargs)
     grouped = legs.complete_leg(fold, plan_leg, 2, groups=True, **kwargs)
-    expected = legs.trim(groups(fold, joints, floor, dt))
+    expected = legs.trim(brought_home)
     assert grouped.complete and not grouped.rescued and plain.grouped == ()
     moved = np.flatnonzero(legs._changed(joints, expected))
     assert {4, 24} <= set(moved.tolist())  # the stragglers, with the neighbours that made way
