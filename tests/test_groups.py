@@ -202,6 +202,22 @@ def test_a_tuned_path_waits_for_a_neighbour_in_its_way_and_keeps_the_speed_limit
     parked = field_.copy()
     parked[:] = field_[0]
     assert _tune(group, np.stack([a, b]), parked, 0, dt) is None
+    # Home, the member must stay clear while the neighbours go on: a neighbour that, after the
+    # member arrived, moves onto its target refuses the play; the same field without that move does not.
+    j = int(np.flatnonzero(np.any(field_[0] != field_[-1], axis=1))[0])
+
+    def on_target(q: np.ndarray) -> bool:  # (j at q overlaps the member at its target)
+        field_q = sc.start.copy()
+        field_q[j] = q
+        return _Group(sc, field_q, [i], nbrs, floor).clearance(b.reshape(1, 1, 2)).min() < 0.0
+
+    onto = next(q for q in (rng.uniform(lim[:, 0], lim[:, 1]) for _ in range(5000)) if on_target(q))
+    late = np.repeat(field_[-1:], len(played) + 40, axis=0)
+    late[len(played) + 20 :, j] = onto
+    calm = late.copy()
+    calm[:] = field_[-1]
+    assert _tune(group, np.stack([a, b]), calm, 0, dt) is not None
+    assert _tune(group, np.stack([a, b]), late, 0, dt) is None
 
 
 def test_the_grouped_first_attempt_is_kept_where_the_attempts_after_it_are_longer(stalled, brought_home):

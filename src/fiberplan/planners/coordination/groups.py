@@ -92,6 +92,11 @@ SHRINKS = 6
 moves in a few directions are clear)."""
 
 
+CACHED_SIZES = 32
+"""Sizes of clearance call whose pairs' bases and orientations a group keeps (a few MB; all of
+them, over 200 sizes on MOONS 61 unfold seed 6, held over 100 MB a group)."""
+
+
 class _Group:
     """Clearance checks of one group's members moving together among neighbours held at ``q``."""
 
@@ -126,9 +131,11 @@ class _Group:
         q_outer = np.broadcast_to(self.q_outer, (m, len(o), 2)) if q_outer is None else q_outer
         qj = np.concatenate([x[:, b], q_outer], axis=1).reshape(-1, 2)
         rows = self._rows.get(m)
-        if rows is None:  # (a search asks for a few sizes thousands of times)
+        if rows is None:  # (a search asks for a few sizes thousands of times: the first few are kept)
             ii, jj = np.tile(self._i, m), np.tile(self._j, m)
-            rows = self._rows[m] = (leg.base_xy[ii], leg.orient[ii], leg.base_xy[jj], leg.orient[jj])
+            rows = (leg.base_xy[ii], leg.orient[ii], leg.base_xy[jj], leg.orient[jj])
+            if len(self._rows) < CACHED_SIZES:
+                self._rows[m] = rows
         base_i, orient_i, base_j, orient_j = rows
         c = clearance_rows(leg.instrument, base_i, orient_i, qi, base_j, orient_j, qj)
         return c.min(axis=1).reshape(m, -1)
@@ -425,7 +432,8 @@ EARLY_STEP_S = 1.0
 """Spacing (s) of the start times a group tries before its other neighbours hold (:func:`_early`)."""
 
 EARLY_ITERATIONS = 500
-"""Samples per member of the search from one early start (:data:`ITERATIONS` for the last start)."""
+"""Samples per member of the search from each early start (:data:`ITERATIONS` for the start
+where the neighbours hold, :func:`_move`)."""
 
 
 def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
@@ -437,9 +445,10 @@ def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarra
 
     From each start, the members' configuration there: a path is searched among the neighbours
     where they will hold (:func:`_connect`, :data:`EARLY_ITERATIONS` samples per member), then
-    played along the neighbours' own motion by :func:`_tune`. (A stalled attempt's stragglers
-    are those with the longest moves, blocked from the start: MOONS 500 unfold seed 0's straggler
-    groups start 5-9 s earlier so, and end 5-8 s earlier.)"""
+    played along the neighbours' own motion by :func:`_tune`. A start whose configuration (or
+    the targets) is not clear of the neighbours where they will hold is passed over. (A stalled
+    attempt's stragglers are those with the longest moves, blocked from the start: MOONS 500
+    unfold seed 0's straggler groups start 5-9 s earlier so, and end 5.7-8.6 s earlier.)"""
     members = np.array(part, dtype=np.int64)
     group = _Group(leg, out[-1], part, nbrs, floor_mm)  # (the neighbours where they hold)
     for ks in range(0, k0, max(1, round(EARLY_STEP_S / dt_s))):
