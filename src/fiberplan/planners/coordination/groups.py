@@ -195,7 +195,7 @@ class _Group:
         neighbour moves too); an interval it does not prove clear is halved, up to
         :data:`BISECTIONS` times, as in :meth:`edge_ok`."""
         c0, c1 = self.clearance(x0, q0), self.clearance(x1, q1)
-        good = (c0.min(axis=1) >= self.floor) & (c1.min(axis=1) >= self.floor)
+        good = (c0.min(axis=1, initial=np.inf) >= self.floor) & (c1.min(axis=1, initial=np.inf) >= self.floor)  # (no pairs: clear)
         mx = motion_bound(self.rho, np.abs(x1 - x0))  # (M, g)
         mq = motion_bound(self.rho, np.abs(q1 - q0))  # (M, len(outer))
         bound = np.concatenate([mx[:, self.inner[:, 0]] + mx[:, self.inner[:, 1]], mx[:, self.outer[:, 0]] + mq], axis=1)
@@ -212,7 +212,7 @@ class _Group:
             mid = 0.5 * (lo + hi)
             f = mid[:, None, None]
             c_mid = self.clearance(x0[rows] * (1.0 - f) + x1[rows] * f, q0[rows] * (1.0 - f) + q1[rows] * f)
-            good[rows[c_mid.min(axis=1) < self.floor]] = False
+            good[rows[c_mid.min(axis=1, initial=np.inf) < self.floor]] = False
             rows, lo, hi = np.concatenate([rows, rows]), np.concatenate([lo, mid]), np.concatenate([mid, hi])
             c_lo, c_hi = np.concatenate([c_lo, c_mid]), np.concatenate([c_mid, c_hi])
         return good
@@ -413,7 +413,7 @@ def _move(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray
         timed = _timed(_shortcut(group, path, rng, speeds), speeds, dt_s).reshape(-1, len(part), 2)
         # The margin at every played sample, as solo moves keep it (the check proves the moves
         # clear between sub-steps, not at the margin): else the next search.
-        if group.clearance(timed).min() >= floor_mm:
+        if group.clearance(timed).min(initial=np.inf) >= floor_mm:
             return _placed(leg, out, members, k0, timed)
     return None
 
