@@ -330,9 +330,9 @@ def _timed(path: np.ndarray, speeds: np.ndarray, dt_s: float) -> np.ndarray:
 
 def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed: int = 0) -> np.ndarray | None:
     """``joints`` ``(K, N, 2)`` (an attempt of ``leg``) with the positioners it left short brought
-    home by group moves, every group that finds a way (the others stay where the attempt left
-    them), or ``None`` if none does (or nobody is short). Groups that touch are searched as one
-    up to :data:`MERGE_UP_TO` members, else (or if that finds no way) one after the other."""
+    home by group moves, or ``None`` as soon as a group finds no way (or if nobody is short).
+    Groups that touch are searched as one up to :data:`MERGE_UP_TO` members, else (or if that
+    finds no way) one after the other."""
     target, end = leg.target, joints[-1]
     short = np.flatnonzero(~np.all(end == target, axis=1) & ~leg.locked)
     if not len(short):
@@ -371,18 +371,20 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
                 joined = True
                 break
     out = joints
-    home = 0
     for unit in units:
         if len(unit) > 1:
             moved = _move(leg, out, sorted(set().union(*unit)), nbrs, floor_mm, dt_s, seed)
             if moved is not None:
-                out, home = moved, home + 1
+                out = moved
                 continue
         for part in unit:  # (one after the other: each starts once the ones before it are home)
             moved = _move(leg, out, part, nbrs, floor_mm, dt_s, seed)
-            if moved is not None:
-                out, home = moved, home + 1
-    return out if home else None
+            if moved is None:
+                # A leg is completed by group moves only where every group finds a way (the
+                # coordination layer keeps no partial one): the groups after this one need no search.
+                return None
+            out = moved
+    return out
 
 
 def _move(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
@@ -436,6 +438,11 @@ EARLY_ITERATIONS = 500
 where the neighbours hold, :func:`_move`)."""
 
 
+HOLD_SCREEN = True
+"""Whether :func:`_early` passes over the starts at which the members could not hold while their
+neighbours go on (off: every start is searched, as in session 46)."""
+
+
 def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
            seed: int, k0: int) -> tuple[int, np.ndarray] | None:
     """Group ``part`` brought home starting before sample ``k0`` (after which its other
@@ -451,9 +458,17 @@ def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarra
     unfold seed 0's straggler groups start 5-9 s earlier so, and end 5.7-8.6 s earlier.)"""
     members = np.array(part, dtype=np.int64)
     group = _Group(leg, out[-1], part, nbrs, floor_mm)  # (the neighbours where they hold)
+    field, last = out[:, group.outer[:, 1]], len(out) - 1  # (the outer neighbours, sample by sample)
     for ks in range(0, k0, max(1, round(EARLY_STEP_S / dt_s))):
         start, goal = out[ks, members].ravel(), leg.target[members].ravel()
         if not (group.edge_ok(start, start) and group.edge_ok(goal, goal)):
+            continue
+        # A start from which the members could not wait where they stand while the neighbours go
+        # on is passed over before any search: from such starts the play met a neighbour within
+        # the first 2 s and found no way to wait (every early start that worked on MOONS 500
+        # unfold seed 5's first fold was one the members could wait at; :data:`HOLD_SCREEN`).
+        hold = np.broadcast_to(out[ks, members][None], (last - ks, len(part), 2))
+        if HOLD_SCREEN and not group.played_ok(hold, hold, field[ks:last], field[ks + 1 :]).all():
             continue
         rng = np.random.default_rng((seed, SEARCHES, ks, *part))
         path = _connect(group, start, goal, rng, EARLY_ITERATIONS)
