@@ -31,9 +31,29 @@ def stalled():
 
 @pytest.fixture(scope="module")
 def brought_home(stalled):
-    """The stalled attempt with its groups brought home (one search shared by the tests)."""
+    """The stalled attempt with its groups brought home (one search shared by the tests); the early
+    starts' calls and the starts they searched are recorded in ``early_calls`` / ``early_searched``."""
     fold, joints, dt = stalled
-    return groups(fold, joints, default_safety_margin_mm(fold.instrument), dt)
+    early, connect = groups_module._early, groups_module._connect
+
+    def spy_early(leg, out, part, *rest):
+        early_calls.append((out.copy(), list(part), rest[-1]))
+        return early(leg, out, part, *rest)
+
+    def spy_connect(group, start, goal, rng, iterations=None):
+        if iterations == groups_module.EARLY_ITERATIONS:
+            early_searched.append((group.members.tolist(), start.copy()))
+        return connect(group, start, goal, rng, iterations)
+
+    groups_module._early, groups_module._connect = spy_early, spy_connect
+    try:
+        return groups(fold, joints, default_safety_margin_mm(fold.instrument), dt)
+    finally:
+        groups_module._early, groups_module._connect = early, connect
+
+
+early_calls: list[tuple[np.ndarray, list[int], int]] = []
+early_searched: list[tuple[list[int], np.ndarray]] = []
 
 
 def test_group_moves_bring_a_stalled_fold_home_clear(stalled, brought_home):
@@ -64,6 +84,47 @@ def test_group_moves_bring_a_stalled_fold_home_clear(stalled, brought_home):
         first = np.flatnonzero(differs[:, i])
         early |= bool(len(moves) and len(first) and first[0] < moves[-1])
     assert early
+
+
+def test_early_starts_the_members_cannot_hold_at_are_not_searched(stalled, brought_home):
+    """Every early start searched is one from which the members could wait, where they stand,
+    while their neighbours go on (HOLD_SCREEN), and the screen passes over some start that the
+    clearance checks alone would have searched."""
+    fold, _, dt = stalled
+    assert brought_home is not None and early_calls and early_searched
+    floor = default_safety_margin_mm(fold.instrument)
+    nbrs = neighbour_lists(fold.pairs, fold.n_positioners)[0]
+    stride = max(1, round(groups_module.EARLY_STEP_S / dt))
+    searched = passed_over = 0
+    for out, part, k0 in early_calls:
+        members = np.array(part)
+        group = _Group(fold, out[-1], part, nbrs, floor)
+        field, last = out[:, group.outer[:, 1]], len(out) - 1
+        starts = [x for m, x in early_searched if m == part]
+        for ks in range(0, k0, stride):
+            start = out[ks, members].ravel()
+            if not (group.edge_ok(start, start) and group.edge_ok(fold.target[members].ravel(), fold.target[members].ravel())):
+                continue
+            hold = np.broadcast_to(out[ks, members][None], (last - ks, len(part), 2))
+            holds = bool(group.played_ok(hold, hold, field[ks:last], field[ks + 1 :]).all())
+            was_searched = any(np.array_equal(x, start) for x in starts)
+            if was_searched:
+                assert holds, (part, ks)
+                searched += 1
+            elif not holds:
+                passed_over += 1
+    assert searched and passed_over
+
+
+def test_the_groups_after_one_without_a_way_are_not_searched(stalled, brought_home, monkeypatch):
+    """A leg is kept completed by group moves only where every group finds a way: once one finds
+    none, the groups after it are not searched (the stalled fold has two, searched one by one)."""
+    fold, joints, dt = stalled
+    assert len(early_calls) == 2  # (the fixture's run: both groups searched)
+    calls = []
+    monkeypatch.setattr(groups_module, "_move", lambda leg, out, part, *rest: calls.append(part))
+    assert groups(fold, joints, default_safety_margin_mm(fold.instrument), dt) is None
+    assert len(calls) == 1
 
 
 def test_no_way_means_no_group_moves(stalled, monkeypatch):
