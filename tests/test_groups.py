@@ -3,6 +3,8 @@ and the neighbours in their way brought home together, checked by the verifier."
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -40,10 +42,10 @@ def brought_home(stalled):
         early_calls.append((out.copy(), list(part), rest[-1]))
         return early(leg, out, part, *rest)
 
-    def spy_connect(group, start, goal, rng, iterations=None):
+    def spy_connect(group, start, goal, rng, iterations=None, goal_tree=None):
         if iterations == groups_module.EARLY_ITERATIONS:
             early_searched.append((group.members.tolist(), start.copy()))
-        return connect(group, start, goal, rng, iterations)
+        return connect(group, start, goal, rng, iterations, goal_tree)
 
     groups_module._early, groups_module._connect = spy_early, spy_connect
     try:
@@ -88,7 +90,7 @@ def test_group_moves_bring_a_stalled_fold_home_clear(stalled, brought_home):
 
 def test_early_starts_the_members_cannot_hold_at_are_not_searched(stalled, brought_home):
     """Every early start searched is one from which the members could wait, where they stand,
-    while their neighbours go on (HOLD_SCREEN), and the screen passes over some start that the
+    while their neighbours go on (HOLD_SCREEN_S), and the screen passes over some start that the
     clearance checks alone would have searched."""
     fold, _, dt = stalled
     assert brought_home is not None and early_calls and early_searched
@@ -114,6 +116,32 @@ def test_early_starts_the_members_cannot_hold_at_are_not_searched(stalled, broug
             elif not holds:
                 passed_over += 1
     assert searched and passed_over
+
+
+def test_searches_from_successive_starts_share_the_goals_tree(stalled, brought_home):
+    """The goal's side of a search stays valid for the next start among the same neighbours: a
+    second search grows the same tree further, and its path runs from its own start to the goal
+    along moves the check accepts."""
+    fold = stalled[0]
+    assert brought_home is not None
+    floor = default_safety_margin_mm(fold.instrument)
+    nbrs = neighbour_lists(fold.pairs, fold.n_positioners)[0]
+    searched = [(out, part, [x for m, x in early_searched if m == part]) for out, part, _ in early_calls]
+    out, part, starts = max(searched, key=lambda c: len(c[2]))  # (the group searched from most starts)
+    assert len(starts) >= 2
+    group = _Group(fold, out[-1], part, nbrs, floor)
+    goal = fold.target[part].ravel()
+    tree = groups_module._Tree(goal)
+    sizes = []
+    for n, start in enumerate(starts[:2]):
+        path = groups_module._connect(group, start, goal, np.random.default_rng(n), 200, tree)
+        sizes.append(len(tree.nodes))
+        if path is not None:
+            np.testing.assert_array_equal(path[0], start)
+            np.testing.assert_array_equal(path[-1], goal)
+            assert all(group.edge_ok(a, b) for a, b in itertools.pairwise(path))
+    np.testing.assert_array_equal(tree.nodes[0], goal)
+    assert 1 < sizes[0] <= sizes[1]
 
 
 def test_the_groups_after_one_without_a_way_are_not_searched(stalled, brought_home, monkeypatch):

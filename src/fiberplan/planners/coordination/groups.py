@@ -222,38 +222,58 @@ class _Group:
         return (x0[None] * (1.0 - s[:, None]) + x1[None] * s[:, None]).reshape(len(s), -1, 2)
 
 
+class _Tree:
+    """A search tree: its nodes (flat configurations), each one's parent (-1: the root), and the
+    nodes as one array for the nearest-node queries (grown by doubling)."""
+
+    def __init__(self, root: np.ndarray) -> None:
+        self.nodes, self.parents = [root], [-1]
+        self._array = np.empty((16, len(root)))
+        self._array[0] = root
+
+    def add(self, x: np.ndarray, parent: int) -> int:
+        if len(self.nodes) == len(self._array):
+            self._array = np.concatenate([self._array, np.empty_like(self._array)])
+        self._array[len(self.nodes)] = x
+        self.nodes.append(x)
+        self.parents.append(parent)
+        return len(self.nodes) - 1
+
+    def nearest(self, x: np.ndarray) -> int:
+        return int(np.argmin(np.abs(self._array[: len(self.nodes)] - x).max(axis=1)))
+
+    def chain(self, k: int) -> list[np.ndarray]:
+        """The nodes from ``k`` to the root."""
+        out = []
+        while k != -1:
+            out.append(self.nodes[k])
+            k = self.parents[k]
+        return out
+
+
 def _connect(group: _Group, start: np.ndarray, goal: np.ndarray, rng: np.random.Generator,
-             iterations: int | None = None) -> np.ndarray | None:
+             iterations: int | None = None, goal_tree: _Tree | None = None) -> np.ndarray | None:
     """RRT-Connect between ``start`` and ``goal`` (flat): waypoints ``(W, 2g)`` or ``None``, after
     at most ``iterations`` (default :data:`ITERATIONS`) samples per member. The smaller tree is the
     one extended towards each sample (the balanced form of Kuffner and LaValle's alternation), the
-    other then pulled towards the new node."""
-    trees = [([start], [-1]), ([goal], [-1])]
+    other then pulled towards the new node. A ``goal_tree`` (rooted at ``goal``, grown in place)
+    carries the goal's side over from an earlier search among the same neighbours."""
+    trees = [_Tree(start), _Tree(goal) if goal_tree is None else goal_tree]
     swapped = False
 
-    def extend(tree: tuple[list[np.ndarray], list[int]], x: np.ndarray) -> tuple[int | None, bool]:
-        nodes, parents = tree
-        near = int(np.argmin(np.abs(np.asarray(nodes) - x).max(axis=1)))
-        d = x - nodes[near]
+    def extend(tree: _Tree, x: np.ndarray) -> tuple[int | None, bool]:
+        near = tree.nearest(x)
+        x_near = tree.nodes[near]
+        d = x - x_near
         n = float(np.abs(d).max())
-        new = x if n <= STEP_RAD else nodes[near] + d * (STEP_RAD / n)
+        new = x if n <= STEP_RAD else x_near + d * (STEP_RAD / n)
         ends = [new]
         for _ in range(SHRINKS):  # (halved where not clear)
-            ends.append(nodes[near] + (ends[-1] - nodes[near]) * 0.5)
-        first = group.first_ok(nodes[near], ends)
+            ends.append(x_near + (ends[-1] - x_near) * 0.5)
+        first = group.first_ok(x_near, ends)
         if first is None:
             return None, False
-        nodes.append(ends[first])
-        parents.append(near)
-        return len(nodes) - 1, n <= STEP_RAD and first == 0
-
-    def chain(tree: tuple[list[np.ndarray], list[int]], k: int) -> list[np.ndarray]:
-        nodes, parents = tree
-        out = []
-        while k != -1:
-            out.append(nodes[k])
-            k = parents[k]
-        return out
+        return tree.add(ends[first], near), n <= STEP_RAD and first == 0
 
     g = len(group.members)
     lo, hi = group.lo.reshape(g, 2), group.hi.reshape(g, 2)
@@ -273,17 +293,17 @@ def _connect(group: _Group, start: np.ndarray, goal: np.ndarray, rng: np.random.
 
     for _ in range((ITERATIONS if iterations is None else iterations) * g):
         a, b = trees
-        x = b[0][0] if rng.random() < GOAL_BIAS else sample()
+        x = b.nodes[0] if rng.random() < GOAL_BIAS else sample()
         k, _ = extend(a, x)
         if k is not None:
             while True:
-                kb, reached = extend(b, a[0][k])
+                kb, reached = extend(b, a.nodes[k])
                 if kb is None:
                     break
                 if reached:
-                    path = chain(a, k)[::-1] + chain(b, kb)
+                    path = a.chain(k)[::-1] + b.chain(kb)
                     return np.array(path[::-1] if swapped else path)
-        if len(trees[0][0]) > len(trees[1][0]):  # the smaller tree extends next (a stalled start's grows slowly)
+        if len(trees[0].nodes) > len(trees[1].nodes):  # the smaller tree extends next (a stalled start's grows slowly)
             trees = [b, a]
             swapped = not swapped
     return None
@@ -438,9 +458,16 @@ EARLY_ITERATIONS = 500
 where the neighbours hold, :func:`_move`)."""
 
 
-HOLD_SCREEN = True
-"""Whether :func:`_early` passes over the starts at which the members could not hold while their
-neighbours go on (off: every start is searched, as in session 46)."""
+HOLD_SCREEN_S: float | None = np.inf
+"""How long (s) the members must be able to hold at an early start while their neighbours go on
+for :func:`_early` to search from it (``inf``: to the end of the attempt; ``None``: every start
+is searched, as in session 46)."""
+
+
+SHARED_GOAL_TREE = True
+"""Whether :func:`_early`'s searches from successive starts share the goal's tree (the neighbours
+where they will hold are the same for every start: the goal's side grown by one search stays
+valid for the next)."""
 
 
 def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
@@ -459,6 +486,7 @@ def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarra
     members = np.array(part, dtype=np.int64)
     group = _Group(leg, out[-1], part, nbrs, floor_mm)  # (the neighbours where they hold)
     field, last = out[:, group.outer[:, 1]], len(out) - 1  # (the outer neighbours, sample by sample)
+    goal_tree = _Tree(leg.target[members].ravel()) if SHARED_GOAL_TREE else None
     for ks in range(0, k0, max(1, round(EARLY_STEP_S / dt_s))):
         start, goal = out[ks, members].ravel(), leg.target[members].ravel()
         if not (group.edge_ok(start, start) and group.edge_ok(goal, goal)):
@@ -466,12 +494,14 @@ def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarra
         # A start from which the members could not wait where they stand while the neighbours go
         # on is passed over before any search: from such starts the play met a neighbour within
         # the first 2 s and found no way to wait (every early start that worked on MOONS 500
-        # unfold seed 5's first fold was one the members could wait at; :data:`HOLD_SCREEN`).
-        hold = np.broadcast_to(out[ks, members][None], (last - ks, len(part), 2))
-        if HOLD_SCREEN and not group.played_ok(hold, hold, field[ks:last], field[ks + 1 :]).all():
-            continue
+        # unfold seed 5's first fold was one the members could wait at; :data:`HOLD_SCREEN_S`).
+        if HOLD_SCREEN_S is not None:
+            until = last if HOLD_SCREEN_S == np.inf else min(last, ks + max(1, round(HOLD_SCREEN_S / dt_s)))
+            hold = np.broadcast_to(out[ks, members][None], (until - ks, len(part), 2))
+            if not group.played_ok(hold, hold, field[ks:until], field[ks + 1 : until + 1]).all():
+                continue
         rng = np.random.default_rng((seed, SEARCHES, ks, *part))
-        path = _connect(group, start, goal, rng, EARLY_ITERATIONS)
+        path = _connect(group, start, goal, rng, EARLY_ITERATIONS, goal_tree)
         if path is None:
             continue
         played = _tune(group, _shortcut(group, path, rng, leg.instrument.speeds_rad_s), out, ks, dt_s)
