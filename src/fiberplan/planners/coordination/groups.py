@@ -464,10 +464,12 @@ for :func:`_early` to search from it (``inf``: to the end of the attempt; ``None
 is searched, as in session 46)."""
 
 
-SHARED_GOAL_TREE = True
+SHARED_GOAL_TREE = False
 """Whether :func:`_early`'s searches from successive starts share the goal's tree (the neighbours
 where they will hold are the same for every start: the goal's side grown by one search stays
-valid for the next)."""
+valid for the next). Off: on MOONS 500 and MOONS 61 it planned faster on most seeds but found other
+ways, as often longer (MOONS 500 unfold seed 5: 4.16 -> 5.41 x the bound) as shorter
+(docs/results.md, session 47)."""
 
 
 def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
