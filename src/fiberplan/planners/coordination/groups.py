@@ -494,9 +494,9 @@ def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarra
         if not (group.edge_ok(start, start) and group.edge_ok(goal, goal)):
             continue
         # A start from which the members could not wait where they stand while the neighbours go
-        # on is passed over before any search: from such starts the play met a neighbour within
-        # the first 2 s and found no way to wait (every early start that worked on MOONS 500
-        # unfold seed 5's first fold was one the members could wait at; :data:`HOLD_SCREEN_S`).
+        # on is passed over before any search: from such starts most plays met a neighbour within
+        # their first 2 s with no way to wait, and every early start that worked on MOONS 500
+        # unfold seed 5's first fold was one the members could wait at (:data:`HOLD_SCREEN_S`).
         if HOLD_SCREEN_S is not None:
             until = last if HOLD_SCREEN_S == np.inf else min(last, ks + max(1, round(HOLD_SCREEN_S / dt_s)))
             hold = np.broadcast_to(out[ks, members][None], (until - ks, len(part), 2))
