@@ -488,10 +488,13 @@ def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarra
     members = np.array(part, dtype=np.int64)
     group = _Group(leg, out[-1], part, nbrs, floor_mm)  # (the neighbours where they hold)
     field, last = out[:, group.outer[:, 1]], len(out) - 1  # (the outer neighbours, sample by sample)
-    goal_tree = _Tree(leg.target[members].ravel()) if SHARED_GOAL_TREE else None
+    goal = leg.target[members].ravel()
+    if not group.edge_ok(goal, goal):  # (the same for every start)
+        return None
+    goal_tree = _Tree(goal) if SHARED_GOAL_TREE else None
     for ks in range(0, k0, max(1, round(EARLY_STEP_S / dt_s))):
-        start, goal = out[ks, members].ravel(), leg.target[members].ravel()
-        if not (group.edge_ok(start, start) and group.edge_ok(goal, goal)):
+        start = out[ks, members].ravel()
+        if not group.edge_ok(start, start):
             continue
         # A start from which the members could not wait where they stand while the neighbours go
         # on is passed over before any search: from such starts most plays met a neighbour within
