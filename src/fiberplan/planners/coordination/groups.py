@@ -92,6 +92,29 @@ SHRINKS = 6
 moves in a few directions are clear)."""
 
 
+CHECKS: float = np.inf
+"""Pair clearances (a pair at one configuration) that one leg's group moves may evaluate, all
+searches, shortcuts, screens and plays together, before they are given up (the leg stays as its
+attempts left it). Counted, not timed, so plans stay reproducible; ``inf``: unbounded."""
+
+
+class _Spent(Exception):
+    """A leg's group moves used up :data:`CHECKS`."""
+
+
+class _Budget:
+    """Pair clearances a leg's group moves have left (:data:`CHECKS`), and how many they used."""
+
+    def __init__(self, checks: float) -> None:
+        self.left, self.used = checks, 0
+
+    def spend(self, n: int) -> None:
+        self.used += n
+        self.left -= n
+        if self.left < 0:
+            raise _Spent
+
+
 CACHED_SIZES = 32
 """Sizes of clearance call whose pairs' bases and orientations a group keeps (a few MB; all of
 them, over 200 sizes on MOONS 61 unfold seed 6, held over 100 MB a group)."""
@@ -100,8 +123,9 @@ them, over 200 sizes on MOONS 61 unfold seed 6, held over 100 MB a group)."""
 class _Group:
     """Clearance checks of one group's members moving together among neighbours held at ``q``."""
 
-    def __init__(self, leg: Scenario, q: np.ndarray, members: list[int], nbrs: list[np.ndarray], floor_mm: float) -> None:
-        self.leg, self.members, self.floor = leg, np.asarray(members, dtype=np.int64), floor_mm
+    def __init__(self, leg: Scenario, q: np.ndarray, members: list[int], nbrs: list[np.ndarray], floor_mm: float,
+                 budget: _Budget | None = None) -> None:
+        self.leg, self.members, self.floor, self.budget = leg, np.asarray(members, dtype=np.int64), floor_mm, budget
         index = {m: a for a, m in enumerate(members)}
         inner, outer = [], []
         for a, i in enumerate(members):
@@ -125,6 +149,8 @@ class _Group:
         """``(M, P)`` clearances of the group's pairs (inner, then outer) at configurations ``x``
         ``(M, g, 2)``, the outer neighbours where they hold or, given, at ``q_outer`` ``(M, len(outer), 2)``."""
         leg, m = self.leg, len(x)
+        if self.budget is not None:
+            self.budget.spend(m * (len(self.inner) + len(self.outer)))
         a, b = self.inner[:, 0], self.inner[:, 1]
         o = self.outer[:, 0]
         qi = np.concatenate([x[:, a], x[:, o]], axis=1).reshape(-1, 2)
@@ -350,7 +376,8 @@ def _timed(path: np.ndarray, speeds: np.ndarray, dt_s: float) -> np.ndarray:
 
 def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed: int = 0) -> np.ndarray | None:
     """``joints`` ``(K, N, 2)`` (an attempt of ``leg``) with the positioners it left short brought
-    home by group moves, or ``None`` as soon as a group finds no way (or if nobody is short).
+    home by group moves, or ``None`` as soon as a group finds no way, if they use up
+    :data:`CHECKS`, or if nobody is short.
     Groups that touch are searched as one up to :data:`MERGE_UP_TO` members, else (or if that
     finds no way) one after the other."""
     target, end = leg.target, joints[-1]
@@ -390,25 +417,28 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
                 units[a] += units.pop(b)
                 joined = True
                 break
-    out = joints
-    for unit in units:
-        if len(unit) > 1:
-            moved = _move(leg, out, sorted(set().union(*unit)), nbrs, floor_mm, dt_s, seed)
-            if moved is not None:
+    out, budget = joints, _Budget(CHECKS)
+    try:
+        for unit in units:
+            if len(unit) > 1:
+                moved = _move(leg, out, sorted(set().union(*unit)), nbrs, floor_mm, dt_s, seed, budget)
+                if moved is not None:
+                    out = moved
+                    continue
+            for part in unit:  # (one after the other: each starts once the ones before it are home)
+                moved = _move(leg, out, part, nbrs, floor_mm, dt_s, seed, budget)
+                if moved is None:
+                    # A leg is completed by group moves only where every group finds a way (the
+                    # coordination layer keeps no partial one): the groups after this one need no search.
+                    return None
                 out = moved
-                continue
-        for part in unit:  # (one after the other: each starts once the ones before it are home)
-            moved = _move(leg, out, part, nbrs, floor_mm, dt_s, seed)
-            if moved is None:
-                # A leg is completed by group moves only where every group finds a way (the
-                # coordination layer keeps no partial one): the groups after this one need no search.
-                return None
-            out = moved
+    except _Spent:  # (:data:`CHECKS` used up)
+        return None
     return out
 
 
 def _move(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
-          seed: int) -> np.ndarray | None:
+          seed: int, budget: _Budget | None = None) -> np.ndarray | None:
     """``out`` with group ``part`` brought home (:func:`groups`): from the earliest start that
     :func:`_early` finds, else from the sample after which its other neighbours hold; ``None``
     if its searches find no way."""
@@ -418,11 +448,11 @@ def _move(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray
     moving = np.any(out[1:, outer] != out[:-1, outer], axis=(1, 2)) if len(outer) else np.zeros(0, dtype=bool)
     later = np.flatnonzero(moving)
     k0 = int(later[-1]) + 1 if len(later) else 0  # its other neighbours hold from here on
-    early = _early(leg, out, part, nbrs, floor_mm, dt_s, seed, k0)
+    early = _early(leg, out, part, nbrs, floor_mm, dt_s, seed, k0, budget)
     if early is not None:
         ks, played = early
         return _placed(leg, out, members, ks, played)
-    group = _Group(leg, out[k0], part, nbrs, floor_mm)
+    group = _Group(leg, out[k0], part, nbrs, floor_mm, budget)
     start, goal = out[k0, members].ravel(), leg.target[members].ravel()
     if not (group.edge_ok(start, start) and group.edge_ok(goal, goal)):
         return None
@@ -473,7 +503,7 @@ ways, as often longer (MOONS 500 unfold seed 5: 4.16 -> 5.41 x the bound) as sho
 
 
 def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
-           seed: int, k0: int) -> tuple[int, np.ndarray] | None:
+           seed: int, k0: int, budget: _Budget | None = None) -> tuple[int, np.ndarray] | None:
     """Group ``part`` brought home starting before sample ``k0`` (after which its other
     neighbours hold), while they still move: the first of the starts ``0, EARLY_STEP_S, ...``
     before ``k0`` from which it works, as ``(start sample, the members' samples (M, g, 2))``, or
@@ -486,7 +516,7 @@ def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarra
     attempt's stragglers are those with the longest moves, blocked from the start: MOONS 500
     unfold seed 0's straggler groups start 5-9 s earlier so, and end 5.7-8.6 s earlier.)"""
     members = np.array(part, dtype=np.int64)
-    group = _Group(leg, out[-1], part, nbrs, floor_mm)  # (the neighbours where they hold)
+    group = _Group(leg, out[-1], part, nbrs, floor_mm, budget)  # (the neighbours where they hold)
     field, last = out[:, group.outer[:, 1]], len(out) - 1  # (the outer neighbours, sample by sample)
     goal = leg.target[members].ravel()
     if not group.edge_ok(goal, goal):  # (the same for every start)
