@@ -39,7 +39,7 @@ def brought_home(stalled):
     early, connect = groups_module._early, groups_module._connect
 
     def spy_early(leg, out, part, *rest):
-        early_calls.append((out.copy(), list(part), rest[-1]))
+        early_calls.append((out.copy(), list(part), rest[4]))
         return early(leg, out, part, *rest)
 
     def spy_connect(group, start, goal, rng, iterations=None, goal_tree=None):
@@ -47,15 +47,23 @@ def brought_home(stalled):
             early_searched.append((group.members.tolist(), start.copy()))
         return connect(group, start, goal, rng, iterations, goal_tree)
 
-    groups_module._early, groups_module._connect = spy_early, spy_connect
+    budget = groups_module._Budget
+
+    class SpyBudget(budget):
+        def __init__(self, checks):
+            super().__init__(checks)
+            budgets.append(self)
+
+    groups_module._early, groups_module._connect, groups_module._Budget = spy_early, spy_connect, SpyBudget
     try:
         return groups(fold, joints, default_safety_margin_mm(fold.instrument), dt)
     finally:
-        groups_module._early, groups_module._connect = early, connect
+        groups_module._early, groups_module._connect, groups_module._Budget = early, connect, budget
 
 
 early_calls: list[tuple[np.ndarray, list[int], int]] = []
 early_searched: list[tuple[list[int], np.ndarray]] = []
+budgets: list[groups_module._Budget] = []
 
 
 def test_group_moves_bring_a_stalled_fold_home_clear(stalled, brought_home):
@@ -153,6 +161,25 @@ def test_the_groups_after_one_without_a_way_are_not_searched(stalled, brought_ho
     monkeypatch.setattr(groups_module, "_move", lambda leg, out, part, *rest: calls.append(part))
     assert groups(fold, joints, default_safety_margin_mm(fold.instrument), dt) is None
     assert len(calls) == 1
+
+
+def test_group_moves_given_up_once_their_checks_are_used(stalled, brought_home, monkeypatch):
+    """A leg's group moves evaluate at most CHECKS pair clearances (counted, so the same leg is
+    given up alike on any machine), then give up: the leg stays as its attempts left it."""
+    fold, joints, dt = stalled
+    assert len(budgets) == 1 and budgets[0].used > 0  # (the fixture's run, unbounded)
+    used = budgets[0].used
+    cut = []
+
+    class Cut(groups_module._Budget):
+        def __init__(self, checks):
+            super().__init__(checks)
+            cut.append(self)
+
+    monkeypatch.setattr(groups_module, "_Budget", Cut)
+    monkeypatch.setattr(groups_module, "CHECKS", used // 2)
+    assert groups(fold, joints, default_safety_margin_mm(fold.instrument), dt) is None
+    assert used // 2 < cut[0].used < used  # (stopped at the first evaluation past the bound)
 
 
 def test_no_way_means_no_group_moves(stalled, monkeypatch):
