@@ -177,7 +177,15 @@ class _Group:
     def first_ok(self, x0: np.ndarray, ends: list[np.ndarray]) -> int | None:
         """The first of ``ends`` to which :meth:`edge_ok` accepts the straight move from ``x0``
         (``None``: none), each decided exactly as :meth:`edge_ok` decides it, their sub-steps'
-        clearances measured in one call (a tree's extension and its halvings)."""
+        clearances measured in one call (a tree's extension and its halvings). Where there are
+        several, an end not at the floor is refused before its sub-steps are measured (the end is
+        the move's last sub-step: the same decision)."""
+        if len(ends) > 1:
+            c_end = self.clearance(np.stack(ends).reshape(len(ends), -1, 2)).min(axis=1, initial=np.inf)
+            for n in np.flatnonzero(c_end >= self.floor).tolist():
+                if self.first_ok(x0, [ends[n]]) == 0:
+                    return n
+            return None
         moves = []
         for x1 in ends:
             moved = motion_bound(self.rho, np.abs(x1 - x0).reshape(-1, 2))  # (g,) over the whole move
