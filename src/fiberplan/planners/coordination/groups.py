@@ -92,6 +92,10 @@ SHRINKS = 6
 moves in a few directions are clear)."""
 
 
+COARSE = 8
+"""A long move's sub-steps measured first, one in this many (:meth:`_Group.first_ok`): a random
+shortcut is mostly refused, and most refusals are found among them."""
+
 CHECKS: float = np.inf
 """Pair clearances (a pair at one configuration) that one leg's group moves may evaluate, all
 searches, shortcuts, screens and plays together, before they are given up (the leg stays as its
@@ -176,27 +180,26 @@ class _Group:
 
     def first_ok(self, x0: np.ndarray, ends: list[np.ndarray]) -> int | None:
         """The first of ``ends`` to which :meth:`edge_ok` accepts the straight move from ``x0``
-        (``None``: none), each decided exactly as :meth:`edge_ok` decides it, their sub-steps'
-        clearances measured in one call (a tree's extension and its halvings). Where there are
-        several, an end not at the floor is refused before its sub-steps are measured (the end is
-        the move's last sub-step: the same decision)."""
+        (``None``: none), each decided exactly as :meth:`edge_ok` decides it (a tree's extension
+        and its halvings). An end not at the floor is refused before the sub-steps of its move are
+        measured, and a long move's every :data:`COARSE`-th sub-step is measured before the others:
+        a move with a sub-step below the floor is refused whichever is found first (the same
+        decisions, for a fraction of the clearances where most moves are refused)."""
         if len(ends) > 1:
             c_end = self.clearance(np.stack(ends).reshape(len(ends), -1, 2)).min(axis=1, initial=np.inf)
             for n in np.flatnonzero(c_end >= self.floor).tolist():
                 if self.first_ok(x0, [ends[n]]) == 0:
                     return n
             return None
-        moves = []
-        for x1 in ends:
-            moved = motion_bound(self.rho, np.abs(x1 - x0).reshape(-1, 2))  # (g,) over the whole move
-            s = np.linspace(0.0, 1.0, max(1, int(np.ceil(moved.max() / RESOLUTION_MM))) + 1)
-            moves.append((x1, moved, s, self._along(x0, x1, s)))
-        c_all = self.clearance(np.concatenate([m[3] for m in moves]))
-        at = 0
-        for n, (x1, moved, s, _) in enumerate(moves):
-            c, at = c_all[at : at + len(s)], at + len(s)  # (k + 1, P)
-            if not np.any(c < self.floor) and self._proved(x0, x1, moved, s, c):
-                return n
+        x1 = ends[0]
+        moved = motion_bound(self.rho, np.abs(x1 - x0).reshape(-1, 2))  # (g,) over the whole move
+        s = np.linspace(0.0, 1.0, max(1, int(np.ceil(moved.max() / RESOLUTION_MM))) + 1)
+        along = self._along(x0, x1, s)
+        if len(s) > 4 * COARSE and np.any(self.clearance(along[::COARSE]) < self.floor):
+            return None
+        c = self.clearance(along)  # (k + 1, P)
+        if not np.any(c < self.floor) and self._proved(x0, x1, moved, s, c):
+            return 0
         return None
 
     def _proved(self, x0: np.ndarray, x1: np.ndarray, moved: np.ndarray, s: np.ndarray, c: np.ndarray) -> bool:
