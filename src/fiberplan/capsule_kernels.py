@@ -21,7 +21,10 @@ module shaping its inputs and outputs:
   schedule's tables (:mod:`fiberplan.planners.mpc.schedule`), without numpy's gathered copies.
 - :func:`row_clearances`: :func:`fiberplan.geometry.clearance_rows`, the safety layers' pair
   clearances row by row from :func:`capsule_ends` (a safety layer checks a few rows at a time,
-  thousands of times a run on small groups).
+  thousands of times a run on small groups);
+- :func:`indexed_smallest`: :func:`fiberplan.geometry.indexed_clearances`, the same values'
+  smallest per pair, for pairs read by index from capsule ends placed once (group moves:
+  :mod:`fiberplan.planners.coordination.groups`).
 
 The arithmetic is numpy's, operation for operation and in the same order (the cheapest formula
 each combination's shapes allow: point to point, point to segment, segment to segment closest at
@@ -431,3 +434,23 @@ def row_clearances(start: np.ndarray, end: np.ndarray, combo_ca: np.ndarray, com
             d = _segment_pair(start[m, a, 0], start[m, a, 1], end[m, a, 0], end[m, a, 1],
                               start[r, b, 0], start[r, b, 1], end[r, b, 0], end[r, b, 1])[0]
             out[m, k] = d - combo_radii[k]
+
+
+@numba.njit(cache=True, error_model="numpy", nogil=True)
+def indexed_smallest(start: np.ndarray, end: np.ndarray, i_index: np.ndarray, j_index: np.ndarray, combo_ca: np.ndarray,
+                     combo_cb: np.ndarray, combo_radii: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """``out[m]``: the smallest over the combinations of :func:`row_clearances`' values (the same
+    arithmetic) for the capsule ends ``start``, ``end`` ``(R, C, 2)`` of row ``i_index[m]`` against
+    row ``j_index[m]``: pairs read by index from rows placed once (a group's members at many
+    configurations against neighbours held still)."""
+    for m in range(i_index.shape[0]):
+        u, v = i_index[m], j_index[m]
+        best = 0.0
+        for k in range(combo_ca.shape[0]):
+            a, b = combo_ca[k], combo_cb[k]
+            d = _segment_pair(start[u, a, 0], start[u, a, 1], end[u, a, 0], end[u, a, 1],
+                              start[v, b, 0], start[v, b, 1], end[v, b, 0], end[v, b, 1])[0]
+            c = d - combo_radii[k]
+            best = c if k == 0 else _minimum(best, c)
+        out[m] = best
+

@@ -421,6 +421,34 @@ def clearance_rows(
     return out
 
 
+def capsule_ends_rows(instrument: Instrument, base_xy: np.ndarray, orient: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The capsule ends ``(M, C, 2)`` (start, end) of ``(M, 2)`` joints, placed as
+    :func:`clearance_rows` places them (numpy's cosines and sines, :func:`capsule_kernels.capsule_ends`),
+    for :func:`indexed_clearances`. Capsule instruments only (no polygon zones)."""
+    on_alpha, start_mm, end_mm, _, _ = capsule_tables(instrument)
+    a = joints[:, 0] + orient
+    ab = a + joints[:, 1]
+    trig = [np.ascontiguousarray(x, dtype=np.float64) for x in (np.cos(a), np.sin(a), np.cos(ab), np.sin(ab))]
+    lateral = _lateral(instrument)
+    start_y, end_y = lateral if lateral is not None else (start_mm, end_mm)
+    start = np.empty((len(joints), len(start_mm), 2))
+    end = np.empty_like(start)
+    capsule_kernels.capsule_ends(*trig, np.ascontiguousarray(base_xy[:, 0], dtype=np.float64), np.ascontiguousarray(base_xy[:, 1], dtype=np.float64),
+                                 float(instrument.alpha_arm_mm), on_alpha, start_mm, end_mm, lateral is not None, start_y, end_y, start, end)
+    return start, end
+
+
+def indexed_clearances(instrument: Instrument, start: np.ndarray, end: np.ndarray, i_index: np.ndarray, j_index: np.ndarray) -> np.ndarray:
+    """``(M,)``: for each pair, the smallest of :func:`clearance_rows`' values (bit for bit) over
+    the combinations, of the positioner whose capsule ends (:func:`capsule_ends_rows`) are row
+    ``i_index[m]`` against row ``j_index[m]``."""
+    _, _, _, combos, combo_radii = capsule_tables(instrument)
+    out = np.empty(len(i_index))
+    capsule_kernels.indexed_smallest(start, end, np.ascontiguousarray(i_index, dtype=np.int64), np.ascontiguousarray(j_index, dtype=np.int64),
+                                     combos[:, 0], combos[:, 1], combo_radii, out)
+    return out
+
+
 def min_pair_clearance(
     instrument: Instrument, base_xy: np.ndarray, orient: np.ndarray, joints: np.ndarray, pairs: np.ndarray
 ) -> np.ndarray:

@@ -47,7 +47,7 @@ import itertools
 
 import numpy as np
 
-from fiberplan.geometry import clearance_rows, motion_bound, point_extents
+from fiberplan.geometry import capsule_ends_rows, clearance_rows, indexed_clearances, motion_bound, point_extents
 from fiberplan.layout import neighbour_lists
 from fiberplan.scenario import Scenario
 
@@ -144,7 +144,14 @@ class _Group:
         self.q_outer = q[self.outer[:, 1]]
         self._i = np.concatenate([self.members[self.inner[:, 0]], self.members[self.outer[:, 0]]])
         self._j = np.concatenate([self.members[self.inner[:, 1]], self.outer[:, 1]])
-        self._rows: dict[int, tuple[np.ndarray, ...]] = {}  # M -> the pairs' bases and orientations, M times
+        self._rows: dict[tuple[int, bool], tuple[np.ndarray, ...]] = {}  # (M, neighbours moving) -> the arrays for M configurations
+        # Capsule instruments: the capsules of the neighbours held still are placed once, and each
+        # configuration places the members' only (:func:`capsule_ends_rows`); the pairs are read by
+        # index (:func:`indexed_clearances`), the same values as :func:`clearance_rows` gives.
+        self._indexed = not leg.instrument.polygons
+        if self._indexed:
+            j = self.outer[:, 1]
+            self._held = capsule_ends_rows(leg.instrument, leg.base_xy[j], leg.orient[j], self.q_outer)
         self.rho = point_extents(leg.instrument)
         lim = leg.instrument.limits_rad
         self.lo, self.hi = np.tile(lim[:, 0], len(members)), np.tile(lim[:, 1], len(members))
@@ -155,20 +162,48 @@ class _Group:
         leg, m = self.leg, len(x)
         if self.budget is not None:
             self.budget.spend(m * (len(self.inner) + len(self.outer)))
+        if self._indexed:
+            return self._clearance_indexed(x, q_outer)
         a, b = self.inner[:, 0], self.inner[:, 1]
         o = self.outer[:, 0]
         qi = np.concatenate([x[:, a], x[:, o]], axis=1).reshape(-1, 2)
         q_outer = np.broadcast_to(self.q_outer, (m, len(o), 2)) if q_outer is None else q_outer
         qj = np.concatenate([x[:, b], q_outer], axis=1).reshape(-1, 2)
-        rows = self._rows.get(m)
+        rows = self._rows.get((m, False))
         if rows is None:  # (a search asks for a few sizes thousands of times: the first few are kept)
             ii, jj = np.tile(self._i, m), np.tile(self._j, m)
             rows = (leg.base_xy[ii], leg.orient[ii], leg.base_xy[jj], leg.orient[jj])
             if len(self._rows) < CACHED_SIZES:
-                self._rows[m] = rows
+                self._rows[(m, False)] = rows
         base_i, orient_i, base_j, orient_j = rows
         c = clearance_rows(leg.instrument, base_i, orient_i, qi, base_j, orient_j, qj)
         return c.min(axis=1).reshape(m, -1)
+
+    def _clearance_indexed(self, x: np.ndarray, q_outer: np.ndarray | None) -> np.ndarray:
+        """:meth:`clearance` on a capsule instrument: the members' capsules placed at each of the
+        ``M`` configurations, the outer neighbours' once where they hold (else at each), every pair
+        read by index."""
+        leg, m, g, n_out = self.leg, len(x), len(self.members), len(self.outer)
+        key = (m, q_outer is not None)
+        rows = self._rows.get(key)
+        if rows is None:
+            at = np.arange(m)[:, None] * g
+            i_index = np.concatenate([at + self.inner[:, 0][None], at + self.outer[:, 0][None]], axis=1).ravel()
+            held = m * g + (np.arange(m)[:, None] * n_out if q_outer is not None else 0) + np.arange(n_out)[None]
+            j_index = np.concatenate([at + self.inner[:, 1][None], np.broadcast_to(held, (m, n_out))], axis=1).ravel()
+            j = self.outer[:, 1]
+            rows = (np.tile(leg.base_xy[self.members], (m, 1)), np.tile(leg.orient[self.members], m), i_index, j_index,
+                    np.tile(leg.base_xy[j], (m, 1)), np.tile(leg.orient[j], m))
+            if len(self._rows) < CACHED_SIZES:
+                self._rows[key] = rows
+        base, orient, i_index, j_index, base_out, orient_out = rows
+        start, end = capsule_ends_rows(leg.instrument, base, orient, x.reshape(-1, 2))
+        if q_outer is None:
+            s_out, e_out = self._held
+        else:
+            s_out, e_out = capsule_ends_rows(leg.instrument, base_out, orient_out, q_outer.reshape(-1, 2))
+        c = indexed_clearances(leg.instrument, np.concatenate([start, s_out]), np.concatenate([end, e_out]), i_index, j_index)
+        return c.reshape(m, -1)
 
     def edge_ok(self, x0: np.ndarray, x1: np.ndarray) -> bool:
         """Whether the straight joint move ``x0 -> x1`` (flat ``(2g,)``) keeps every pair at the
