@@ -393,3 +393,28 @@ def test_the_safety_layers_clearances_are_clearance_between_bit_for_bit(name):
     assert got.shape == expected.shape and got.tobytes() == expected.tobytes()
     assert (expected.min(axis=1) < 0).any() and (expected.min(axis=1) > 0).any()
     assert clearance_rows(inst, base_i[:0], orient_i[:0], qi[:0], base_j[:0], orient_j[:0], qj[:0]).shape == (0, expected.shape[1])
+
+
+@pytest.mark.parametrize("name", ["desi", "moons-capsules", "sdss"])
+def test_clearances_read_by_index_are_clearance_rows_bit_for_bit(name):
+    # Group moves' pairs read by index from capsule ends placed once (capsule_ends_rows,
+    # indexed_clearances) against clearance_rows' smallest per pair: rows shared by many pairs,
+    # in any order, a row against itself's neighbour on either side.
+    from fiberplan.geometry import capsule_ends_rows, clearance_rows, indexed_clearances
+
+    inst = load_instrument(name)
+    rng = np.random.default_rng(7)
+    lim = inst.limits_rad
+    r = 300
+    base = rng.uniform(-60, 60, (r, 2))
+    orient = rng.uniform(-np.pi, np.pi, r)
+    joints = rng.uniform(lim[:, 0], lim[:, 1], (r, 2))
+    i_index, j_index = rng.integers(0, r, 5000), rng.integers(0, r, 5000)
+    near = np.linalg.norm(base[i_index] - base[j_index], axis=1) < 2.5 * inst.pitch_mm
+    i_index, j_index = i_index[near], j_index[near]
+    start, end = capsule_ends_rows(inst, base, orient, joints)
+    got = indexed_clearances(inst, start, end, i_index, j_index)
+    expected = clearance_rows(inst, base[i_index], orient[i_index], joints[i_index], base[j_index], orient[j_index],
+                              joints[j_index]).min(axis=1)
+    assert got.tobytes() == expected.tobytes()
+    assert (expected < 0).any() and (expected > 0).any() and len(expected) > 100

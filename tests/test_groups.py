@@ -182,6 +182,25 @@ def test_group_moves_given_up_once_their_checks_are_used(stalled, brought_home, 
     assert used // 2 < cut[0].used < used  # (stopped at the first evaluation past the bound)
 
 
+def test_a_groups_clearances_by_index_are_the_pairs_own(stalled):
+    """On a capsule instrument a group reads its pairs by index from capsules placed once: the
+    same values, bit for bit, as the pairs' own rows (the path kept for polygon zones), with the
+    neighbours held still and moving."""
+    fold, joints, _ = stalled
+    nbrs = neighbour_lists(fold.pairs, fold.n_positioners)[0]
+    group = _Group(fold, joints[-1], [4, 24, 5], nbrs, default_safety_margin_mm(fold.instrument))
+    assert group._indexed and len(group.inner) and len(group.outer)
+    rng = np.random.default_rng(3)
+    x = rng.uniform(group.lo, group.hi, (40, len(group.lo))).reshape(40, 3, 2)
+    q = joints[rng.integers(0, len(joints), 40)][:, group.outer[:, 1]]
+    fast = [group.clearance(x), group.clearance(x, q), group.clearance(x[:1])]
+    group._indexed = False
+    slow = [group.clearance(x), group.clearance(x, q), group.clearance(x[:1])]
+    for a, b in zip(fast, slow, strict=True):
+        assert a.shape == b.shape and a.tobytes() == b.tobytes()
+    assert (slow[0] < 0).any() and (slow[0] > 0).any()
+
+
 def test_no_way_means_no_group_moves(stalled, monkeypatch):
     fold, joints, dt = stalled
     monkeypatch.setattr(groups_module, "ITERATIONS", 0)  # searches that give up at once

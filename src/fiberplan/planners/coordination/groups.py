@@ -144,7 +144,8 @@ class _Group:
         self.q_outer = q[self.outer[:, 1]]
         self._i = np.concatenate([self.members[self.inner[:, 0]], self.members[self.outer[:, 0]]])
         self._j = np.concatenate([self.members[self.inner[:, 1]], self.outer[:, 1]])
-        self._rows: dict[tuple[int, bool], tuple[np.ndarray, ...]] = {}  # (M, neighbours moving) -> the arrays for M configurations
+        self._rows: dict[int, tuple[np.ndarray, ...]] = {}  # M -> the pairs' bases and orientations, M times
+        self._index_rows: dict[tuple[int, bool], tuple[np.ndarray, ...]] = {}  # (M, neighbours moving) -> arrays for M configurations
         # Capsule instruments: the capsules of the neighbours held still are placed once, and each
         # configuration places the members' only (:func:`capsule_ends_rows`); the pairs are read by
         # index (:func:`indexed_clearances`), the same values as :func:`clearance_rows` gives.
@@ -169,12 +170,12 @@ class _Group:
         qi = np.concatenate([x[:, a], x[:, o]], axis=1).reshape(-1, 2)
         q_outer = np.broadcast_to(self.q_outer, (m, len(o), 2)) if q_outer is None else q_outer
         qj = np.concatenate([x[:, b], q_outer], axis=1).reshape(-1, 2)
-        rows = self._rows.get((m, False))
+        rows = self._rows.get(m)
         if rows is None:  # (a search asks for a few sizes thousands of times: the first few are kept)
             ii, jj = np.tile(self._i, m), np.tile(self._j, m)
             rows = (leg.base_xy[ii], leg.orient[ii], leg.base_xy[jj], leg.orient[jj])
             if len(self._rows) < CACHED_SIZES:
-                self._rows[(m, False)] = rows
+                self._rows[m] = rows
         base_i, orient_i, base_j, orient_j = rows
         c = clearance_rows(leg.instrument, base_i, orient_i, qi, base_j, orient_j, qj)
         return c.min(axis=1).reshape(m, -1)
@@ -185,7 +186,7 @@ class _Group:
         read by index."""
         leg, m, g, n_out = self.leg, len(x), len(self.members), len(self.outer)
         key = (m, q_outer is not None)
-        rows = self._rows.get(key)
+        rows = self._index_rows.get(key)
         if rows is None:
             at = np.arange(m)[:, None] * g
             i_index = np.concatenate([at + self.inner[:, 0][None], at + self.outer[:, 0][None]], axis=1).ravel()
@@ -194,8 +195,8 @@ class _Group:
             j = self.outer[:, 1]
             rows = (np.tile(leg.base_xy[self.members], (m, 1)), np.tile(leg.orient[self.members], m), i_index, j_index,
                     np.tile(leg.base_xy[j], (m, 1)), np.tile(leg.orient[j], m))
-            if len(self._rows) < CACHED_SIZES:
-                self._rows[key] = rows
+            if len(self._index_rows) < CACHED_SIZES:
+                self._index_rows[key] = rows
         base, orient, i_index, j_index, base_out, orient_out = rows
         start, end = capsule_ends_rows(leg.instrument, base, orient, x.reshape(-1, 2))
         if q_outer is None:
