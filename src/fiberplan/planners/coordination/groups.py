@@ -35,10 +35,10 @@ together, the neighbour steps aside while the straggler passes and then goes hom
   reversing, minimum speeds) are not applied to it; the verifier reports any breach.)
 
 The search is seeded (the same leg, the same path) and bounded by :data:`ITERATIONS` (and
-:data:`SEARCHES`), not by time, so plans are reproducible. Groups that find no way stay where the attempt left them, held
-still (as the groups planned beside them assumed); the coordination layer uses the result only
-when every group got home (``legs.complete_leg``). The caller's verifier checks the whole
-trajectory.
+:data:`SEARCHES`, and optionally :data:`CHECKS`), not by time, so plans are reproducible.
+Groups that find no way stay where the attempt left them, held still (as the groups planned
+beside them assumed); the coordination layer uses the result only when every group got home
+(``legs.complete_leg``). The caller's verifier checks the whole trajectory.
 """
 
 from __future__ import annotations
