@@ -399,7 +399,7 @@ def test_the_safety_layers_clearances_are_clearance_between_bit_for_bit(name):
 def test_clearances_read_by_index_are_clearance_rows_bit_for_bit(name):
     # Group moves' pairs read by index from capsule ends placed once (capsule_ends_rows,
     # indexed_clearances) against clearance_rows' smallest per pair: rows shared by many pairs,
-    # in any order, a row against itself's neighbour on either side.
+    # in any order, a row on either side of its pairs.
     from fiberplan.geometry import capsule_ends_rows, clearance_rows, indexed_clearances
 
     inst = load_instrument(name)

@@ -18,7 +18,7 @@ module shaping its inputs and outputs:
   combinations per pair);
 - :func:`smallest_combo`: :func:`fiberplan.geometry.smallest_clearance`, the smallest clearance
   over an instrument's capsule combinations for configurations read by index from the start
-  schedule's tables (:mod:`fiberplan.planners.mpc.schedule`), without numpy's gathered copies.
+  schedule's tables (:mod:`fiberplan.planners.mpc.schedule`), without numpy's gathered copies;
 - :func:`row_clearances`: :func:`fiberplan.geometry.clearance_rows`, the safety layers' pair
   clearances row by row from :func:`capsule_ends` (a safety layer checks a few rows at a time,
   thousands of times a run on small groups);
@@ -453,4 +453,3 @@ def indexed_smallest(start: np.ndarray, end: np.ndarray, i_index: np.ndarray, j_
             c = d - combo_radii[k]
             best = c if k == 0 else _minimum(best, c)
         out[m] = best
-

@@ -98,8 +98,9 @@ shortcut is mostly refused, and most refusals are found among them."""
 
 CHECKS: float = np.inf
 """Pair clearances (a pair at one configuration) that one leg's group moves may evaluate, all
-searches, shortcuts, screens and plays together, before they are given up (the leg stays as its
-attempts left it). Counted, not timed, so plans stay reproducible; ``inf``: unbounded."""
+searches, shortcuts, screens and plays together (not the checks that form the groups), before
+they are given up (the leg stays as its attempts left it). What one check is follows the code:
+a finite bound gives up at other points after a change that measures less. Counted, not timed, so plans stay reproducible; ``inf``: unbounded."""
 
 
 class _Spent(Exception):
@@ -120,8 +121,9 @@ class _Budget:
 
 
 CACHED_SIZES = 32
-"""Sizes of clearance call whose pairs' bases and orientations a group keeps (a few MB; all of
-them, over 200 sizes on MOONS 61 unfold seed 6, held over 100 MB a group)."""
+"""Sizes of clearance call whose arrays a group keeps (its pairs' bases and orientations, or on
+capsule instruments its members' and the index arrays; a few MB; all of them, over 200 sizes on
+MOONS 61 unfold seed 6, held over 100 MB a group)."""
 
 
 class _Group:
@@ -182,8 +184,8 @@ class _Group:
 
     def _clearance_indexed(self, x: np.ndarray, q_outer: np.ndarray | None) -> np.ndarray:
         """:meth:`clearance` on a capsule instrument: the members' capsules placed at each of the
-        ``M`` configurations, the outer neighbours' once where they hold (else at each), every pair
-        read by index."""
+        ``M`` configurations, the outer neighbours' once where they hold (``q_outer`` as the group
+        was made with; else at each), every pair read by index."""
         leg, m, g, n_out = self.leg, len(x), len(self.members), len(self.outer)
         key = (m, q_outer is not None)
         rows = self._index_rows.get(key)
@@ -193,8 +195,9 @@ class _Group:
             held = m * g + (np.arange(m)[:, None] * n_out if q_outer is not None else 0) + np.arange(n_out)[None]
             j_index = np.concatenate([at + self.inner[:, 1][None], np.broadcast_to(held, (m, n_out))], axis=1).ravel()
             j = self.outer[:, 1]
+            moving = q_outer is not None  # (held: the neighbours' capsules were placed once, at q_outer)
             rows = (np.tile(leg.base_xy[self.members], (m, 1)), np.tile(leg.orient[self.members], m), i_index, j_index,
-                    np.tile(leg.base_xy[j], (m, 1)), np.tile(leg.orient[j], m))
+                    np.tile(leg.base_xy[j], (m, 1)) if moving else None, np.tile(leg.orient[j], m) if moving else None)
             if len(self._index_rows) < CACHED_SIZES:
                 self._index_rows[key] = rows
         base, orient, i_index, j_index, base_out, orient_out = rows
