@@ -99,8 +99,10 @@ shortcut is mostly refused, and most refusals are found among them."""
 CHECKS: float = np.inf
 """Pair clearances (a pair at one configuration) that one leg's group moves may evaluate, all
 searches, shortcuts, screens and plays together (not the checks that form the groups), before
-they are given up (the leg stays as its attempts left it). What one check is follows the code:
-a finite bound gives up at other points after a change that measures less. Counted, not timed, so plans stay reproducible; ``inf``: unbounded."""
+they are given up (the leg stays as its attempts left it). Counted, not timed, so plans stay
+reproducible; what one check is follows the code (a finite bound gives up at other points after
+a change that measures less). ``inf``: unbounded (session 48: no bound separated the groups that
+found a way from those that did not)."""
 
 
 class _Spent(Exception):
