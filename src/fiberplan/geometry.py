@@ -404,27 +404,18 @@ def clearance_rows(
     keeps :func:`clearance_between`.)"""
     if instrument.polygons or len(joints_i) == 0:
         return clearance_between(instrument, base_i, orient_i, joints_i, base_j, orient_j, joints_j)
-    on_alpha, start_mm, end_mm, combos, combo_radii = capsule_tables(instrument)
-    joints = np.concatenate([joints_i, joints_j])
-    a = joints[:, 0] + np.concatenate([orient_i, orient_j])
-    ab = a + joints[:, 1]
-    base = np.concatenate([base_i, base_j])
-    trig = [np.ascontiguousarray(x, dtype=np.float64) for x in (np.cos(a), np.sin(a), np.cos(ab), np.sin(ab))]  # as capsule_segments
-    lateral = _lateral(instrument)
-    start_y, end_y = lateral if lateral is not None else (start_mm, end_mm)
-    start = np.empty((len(joints), len(start_mm), 2))
-    end = np.empty_like(start)
-    capsule_kernels.capsule_ends(*trig, np.ascontiguousarray(base[:, 0], dtype=np.float64), np.ascontiguousarray(base[:, 1], dtype=np.float64),
-                                 float(instrument.alpha_arm_mm), on_alpha, start_mm, end_mm, lateral is not None, start_y, end_y, start, end)
+    _, _, _, combos, combo_radii = capsule_tables(instrument)
+    start, end = capsule_ends_rows(instrument, np.concatenate([base_i, base_j]), np.concatenate([orient_i, orient_j]),
+                                   np.concatenate([joints_i, joints_j]))
     out = np.empty((len(joints_i), len(combos)))
     capsule_kernels.row_clearances(start, end, combos[:, 0], combos[:, 1], combo_radii, out)
     return out
 
 
 def capsule_ends_rows(instrument: Instrument, base_xy: np.ndarray, orient: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The capsule ends ``(M, C, 2)`` (start, end) of ``(M, 2)`` joints, placed as
-    :func:`clearance_rows` places them (numpy's cosines and sines, :func:`capsule_kernels.capsule_ends`),
-    for :func:`indexed_clearances`. Capsule instruments only (no polygon zones)."""
+    """The capsule ends ``(M, C, 2)`` (start, end) of ``(M, 2)`` joints as :func:`capsule_segments`
+    places them, from numpy's cosines and sines and :func:`capsule_kernels.capsule_ends` (for
+    :func:`clearance_rows` and :func:`indexed_clearances`). Capsule instruments only (no polygon zones)."""
     on_alpha, start_mm, end_mm, _, _ = capsule_tables(instrument)
     a = joints[:, 0] + orient
     ab = a + joints[:, 1]
