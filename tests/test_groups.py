@@ -182,6 +182,67 @@ def test_group_moves_given_up_once_their_checks_are_used(stalled, brought_home, 
     assert used // 2 < cut[0].used < used  # (stopped at the first evaluation past the bound)
 
 
+def test_a_rescue_searches_the_groups_without_a_way_again_after_the_others(stalled, monkeypatch):
+    """``rescue`` (a leg's last resort): a group that finds no way holds while the groups after it
+    are searched, then each such group is searched again with RESCUE_EFFORT times the samples, in
+    the field the others left. Here searches of 5 samples per member find no way for either group
+    of the stalled fold; searched again with 2,000 both do, and the leg verifies clean."""
+    fold, joints, dt = stalled
+    floor = default_safety_margin_mm(fold.instrument)
+    monkeypatch.setattr(groups_module, "EARLY_ITERATIONS", 0)
+    monkeypatch.setattr(groups_module, "ITERATIONS", 5)
+    monkeypatch.setattr(groups_module, "RESCUE_EFFORT", 400)
+    move, calls = groups_module._move, []
+
+    def spy(leg, out, part, *rest):
+        moved = move(leg, out, part, *rest)
+        calls.append((sorted(part), rest[-1] if len(rest) == 6 else 1, moved is not None))
+        return moved
+
+    monkeypatch.setattr(groups_module, "_move", spy)
+    assert groups(fold, joints, floor, dt) is None  # (the first group without a way ends it)
+    assert calls == [([0, 4, 5, 10], 1, False)]
+    calls.clear()
+    out = groups(fold, joints, floor, dt, rescue=True)
+    assert calls == [([0, 4, 5, 10], 1, False), ([9, 16, 24, 34], 1, False), ([0, 4, 5, 10], 400, True), ([9, 16, 24, 34], 400, True)]
+    assert out is not None
+    np.testing.assert_array_equal(out[0], joints[0])
+    np.testing.assert_array_equal(out[-1], fold.target)
+    assert np.all(np.abs(np.diff(out, axis=0)) <= fold.instrument.speeds_rad_s * dt * (1 + 1e-9))
+    assert fp.verify(fold, Trajectory(np.arange(len(out)) * dt, out)).ok
+    monkeypatch.setattr(groups_module, "RESCUE_EFFORT", 1)  # (searched again no harder: still no way)
+    assert groups(fold, joints, floor, dt, rescue=True) is None
+
+
+def test_a_leg_left_short_is_completed_by_the_rescue(stalled, monkeypatch):
+    """``complete_leg`` with ``groups``: where the first attempt's groups find no way and the
+    attempts after it leave the leg short, the rescue's group moves complete it (its moves named
+    in ``Leg.grouped``); a rescue that finds no way leaves the leg as the attempts left it."""
+    import types
+
+    from fiberplan.planners.coordination import legs
+
+    fold, joints, dt = stalled
+    floor = default_safety_margin_mm(fold.instrument)
+
+    def plan_leg(leg, time_limit_s=None, use_fallback=False, progress=None):  # the stalled attempt, then nothing more
+        planned = joints if np.array_equal(leg.start, fold.start) else np.stack([leg.start, leg.start])
+        return types.SimpleNamespace(trajectory=Trajectory(np.arange(len(planned)) * dt, planned))
+
+    monkeypatch.setattr(groups_module, "EARLY_ITERATIONS", 0)
+    monkeypatch.setattr(groups_module, "ITERATIONS", 5)
+    monkeypatch.setattr(legs, "solo_moves", lambda leg, q, *rest: (q[None], None))  # (no solo move brings one home)
+    kwargs = {"unblock": False, "strict": False, "solo": (floor, dt), "groups": True}
+    monkeypatch.setattr(groups_module, "RESCUE_EFFORT", 1)
+    short = legs.complete_leg(fold, plan_leg, 2, **kwargs)
+    assert not short.complete and short.grouped == ()
+    monkeypatch.setattr(groups_module, "RESCUE_EFFORT", 400)
+    done = legs.complete_leg(fold, plan_leg, 2, **kwargs)
+    assert done.complete and {4, 24} <= set(done.grouped)
+    np.testing.assert_array_equal(done.joints[-1], fold.target)
+    assert fp.verify(fold, Trajectory(np.arange(len(done.joints)) * dt, done.joints)).ok
+
+
 def test_a_groups_clearances_by_index_are_the_pairs_own(stalled):
     """On a capsule instrument a group reads its pairs by index from capsules placed once: the
     same values, bit for bit, as the pairs' own rows (the path kept for polygon zones), with the

@@ -426,12 +426,17 @@ def _timed(path: np.ndarray, speeds: np.ndarray, dt_s: float) -> np.ndarray:
     return timed
 
 
-def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed: int = 0) -> np.ndarray | None:
+def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed: int = 0, rescue: bool = False) -> np.ndarray | None:
     """``joints`` ``(K, N, 2)`` (an attempt of ``leg``) with the positioners it left short brought
     home by group moves, or ``None`` as soon as a group finds no way, if they use up
     :data:`CHECKS`, or if nobody is short.
     Groups that touch are searched as one up to :data:`MERGE_UP_TO` members, else (or if that
-    finds no way) one after the other."""
+    finds no way) one after the other.
+
+    With ``rescue`` (a leg's last resort, ``legs.complete_leg``), a group that finds no way holds
+    where the attempt left it while the groups after it are searched; then each such group is
+    searched again, in the field the others left, with :data:`RESCUE_EFFORT` times the samples
+    and :data:`RESCUE_SEARCHES` streams; ``None`` if one still finds none."""
     target, end = leg.target, joints[-1]
     short = np.flatnonzero(~np.all(end == target, axis=1) & ~leg.locked)
     if not len(short):
@@ -470,6 +475,7 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
                 joined = True
                 break
     out, budget = joints, _Budget(CHECKS)
+    stuck: list[list[int]] = []  # (rescue: the groups that found no way, held)
     try:
         for unit in units:
             if len(unit) > 1:
@@ -482,18 +488,39 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
                 if moved is None:
                     # A leg is completed by group moves only where every group finds a way (the
                     # coordination layer keeps no partial one): the groups after this one need no search.
-                    return None
+                    if not rescue:
+                        return None
+                    stuck.append(sorted(part))
+                    continue
                 out = moved
+        for part in stuck:
+            moved = _move(leg, out, part, nbrs, floor_mm, dt_s, seed, budget, RESCUE_EFFORT)
+            if moved is None:
+                return None
+            out = moved
     except _Spent:  # (:data:`CHECKS` used up)
         return None
     return out
 
 
+RESCUE_EFFORT = 4
+"""Times :data:`ITERATIONS` a group's search may draw, with :data:`RESCUE_SEARCHES` streams, when
+it is searched again in a leg's last resort (:func:`groups` with ``rescue``). MOONS 500 unfold
+under MOONS' zones seed 15, the fold's first attempt (33 short): four groups of four to six
+members found no way at 2,000 samples per member (the leg ended 12 short after every attempt);
+searched again after the others, at 8,000 samples per member and three streams, each found one,
+in 3-155 s each (on a loaded machine)."""
+
+RESCUE_SEARCHES = 3
+"""Searches (random streams) of a group searched again in a leg's last resort (:data:`RESCUE_EFFORT`)."""
+
+
 def _move(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
-          seed: int, budget: _Budget | None = None) -> np.ndarray | None:
+          seed: int, budget: _Budget | None = None, effort: int = 1) -> np.ndarray | None:
     """``out`` with group ``part`` brought home (:func:`groups`): from the earliest start that
     :func:`_early` finds, else from the sample after which its other neighbours hold; ``None``
-    if its searches find no way."""
+    if its searches find no way. With ``effort`` > 1 (a rescue), the latter is searched with
+    ``effort`` times :data:`ITERATIONS` and :data:`RESCUE_SEARCHES` streams."""
     speeds = leg.instrument.speeds_rad_s
     members = np.array(part, dtype=np.int64)
     outer = np.setdiff1d(np.concatenate([nbrs[i] for i in part]), members)
@@ -508,10 +535,10 @@ def _move(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray
     start, goal = out[k0, members].ravel(), leg.target[members].ravel()
     if not (group.edge_ok(start, start) and group.edge_ok(goal, goal)):
         return None
-    for attempt in range(SEARCHES):
+    for attempt in range(SEARCHES if effort == 1 else RESCUE_SEARCHES):
         # (Each group's own random stream: its search does not depend on the groups before it.)
         rng = np.random.default_rng((seed, attempt, *part))
-        path = _connect(group, start, goal, rng)
+        path = _connect(group, start, goal, rng, None if effort == 1 else ITERATIONS * effort)
         if path is None:
             continue
         timed = _timed(_shortcut(group, path, rng, speeds), speeds, dt_s).reshape(-1, len(part), 2)

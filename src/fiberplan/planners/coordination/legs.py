@@ -155,11 +155,19 @@ def complete_leg(
     (and ``solo``), the first attempt completed by group moves (:mod:`.groups`: its positioners
     left short go home with the neighbours in their way), where every group finds a way, is kept
     instead of the further attempts' leg if that is incomplete or longer (``Leg.grouped`` names the
-    positioners they moved, also where a restart or backward tail then re-planned the leg's end)."""
+    positioners they moved, also where a restart or backward tail then re-planned the leg's end).
+    Where a group found no way and the attempts leave the leg short, the first attempt's group
+    moves are made again as a last resort, the groups without a way searched harder after the
+    others (``groups.groups`` with ``rescue``); kept if every group then finds a way."""
     t0 = time.perf_counter()
     notes: dict[str, Any] = {}
     joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo, notes, groups)
     grouped, carried = notes.pop("grouped", (None, ()))
+    first_attempt = notes.pop("first", None)
+    if grouped is None and not complete and first_attempt is not None:
+        # The last resort: the first attempt's groups again, those without a way searched harder
+        # after the others (MOONS' zones, MOONS 500 unfold seed 15: 12 short after every attempt).
+        grouped, carried = _grouped(leg, first_attempt, solo, time_limit_s, rescue=True)
     if grouped is not None and (not complete or len(grouped) < len(joints)):
         joints, complete, notes["rescued"] = grouped, True, False
     else:
@@ -302,7 +310,7 @@ def _attempts(
     :data:`FALLBACK_ROUNDS` went beyond the single fallback attempt of before (see :class:`Leg`);
     with ``groups``, ``notes["grouped"]`` holds the first attempt completed by group moves, where
     every group found a way (a candidate: the attempts go on as without it), and the positioners
-    the group moves moved."""
+    the group moves moved; where a group found none, ``notes["first"]`` holds the first attempt."""
     notes = {} if notes is None else notes
     if strict and leg.infeasible:  # a leg target that cannot be reached would break the joint between legs
         return leg.start[None].copy(), 0, False
@@ -332,11 +340,11 @@ def _attempts(
         at = at_targets(leg, end)
         if groups and solo is not None and k == 1 and not at.all():
             # A candidate beside the attempts that follow (complete_leg keeps the shorter).
-            grouped = group_moves(leg, joints, *solo)
-            grouped = None if grouped is None else trim(grouped)  # (its stragglers may have moved last: the idle end goes)
-            if (grouped is not None and at_targets(leg, grouped[-1]).all()
-                    and (time_limit_s is None or (len(grouped) - 1) * solo[1] <= time_limit_s)):
-                notes["grouped"] = (grouped, tuple(np.flatnonzero(_changed(joints, grouped)).tolist()))
+            grouped = _grouped(leg, joints, solo, time_limit_s)
+            if grouped[0] is not None:
+                notes["grouped"] = grouped
+            else:
+                notes["first"] = joints  # (for complete_leg's last resort)
         if at.all():  # (one piece: the planner's own array, not a copy of it: 200 MB at 50,000 positioners)
             return (pieces[0] if len(pieces) == 1 else np.concatenate(pieces)), k, True
         if k < attempts and int(at.sum()) > done_before:  # another attempt follows: it starts at the last arrival
@@ -487,6 +495,19 @@ def _until_last_arrival(leg: Scenario, joints: np.ndarray) -> np.ndarray:
     away = ~at[:, done]
     last_away = np.where(away.any(axis=0), len(joints) - 1 - np.argmax(away[::-1], axis=0), -1)
     return joints[: int(last_away.max()) + 2]
+
+
+def _grouped(leg: Scenario, joints: np.ndarray, solo: tuple[float, float], time_limit_s: float | None,
+             rescue: bool = False) -> tuple[np.ndarray | None, tuple[int, ...]]:
+    """An attempt ``joints`` of ``leg`` completed by group moves (:func:`.groups.groups`, with
+    ``rescue`` as there), trimmed, and the positioners they moved; ``(None, ())`` unless every
+    positioner ends on its target within ``time_limit_s``."""
+    grouped = group_moves(leg, joints, *solo, rescue=rescue)
+    grouped = None if grouped is None else trim(grouped)  # (its stragglers may have moved last: the idle end goes)
+    if (grouped is None or not at_targets(leg, grouped[-1]).all()
+            or (time_limit_s is not None and (len(grouped) - 1) * solo[1] > time_limit_s)):
+        return None, ()
+    return grouped, tuple(np.flatnonzero(_changed(joints, grouped)).tolist())
 
 
 def _changed(a: np.ndarray, b: np.ndarray) -> np.ndarray:
