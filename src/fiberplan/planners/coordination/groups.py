@@ -436,7 +436,8 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
     With ``rescue`` (a leg's last resort, ``legs.complete_leg``), a group that finds no way holds
     where the attempt left it while the groups after it are searched; then each such group is
     searched again, in the field the others left, with :data:`RESCUE_EFFORT` times the samples
-    and :data:`RESCUE_SEARCHES` streams; ``None`` if one still finds none."""
+    and :data:`RESCUE_SEARCHES` streams (its early starts from other streams); ``None`` if one
+    still finds none."""
     target, end = leg.target, joints[-1]
     short = np.flatnonzero(~np.all(end == target, axis=1) & ~leg.locked)
     if not len(short):
@@ -519,15 +520,17 @@ def _move(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray
           seed: int, budget: _Budget | None = None, effort: int = 1) -> np.ndarray | None:
     """``out`` with group ``part`` brought home (:func:`groups`): from the earliest start that
     :func:`_early` finds, else from the sample after which its other neighbours hold; ``None``
-    if its searches find no way. With ``effort`` > 1 (a rescue), the latter is searched with
-    ``effort`` times :data:`ITERATIONS` and :data:`RESCUE_SEARCHES` streams."""
+    if its searches find no way. With ``effort`` > 1 (a rescue), the early starts are searched
+    from other random streams, and the latter with ``effort`` times :data:`ITERATIONS` and
+    :data:`RESCUE_SEARCHES` streams."""
     speeds = leg.instrument.speeds_rad_s
     members = np.array(part, dtype=np.int64)
     outer = np.setdiff1d(np.concatenate([nbrs[i] for i in part]), members)
     moving = np.any(out[1:, outer] != out[:-1, outer], axis=(1, 2)) if len(outer) else np.zeros(0, dtype=bool)
     later = np.flatnonzero(moving)
     k0 = int(later[-1]) + 1 if len(later) else 0  # its other neighbours hold from here on
-    early = _early(leg, out, part, nbrs, floor_mm, dt_s, seed, k0, budget)
+    # (A rescue's early starts are searched from other random streams than the first search's.)
+    early = _early(leg, out, part, nbrs, floor_mm, dt_s, seed, k0, budget, SEARCHES if effort == 1 else RESCUE_SEARCHES)
     if early is not None:
         ks, played = early
         return _placed(leg, out, members, ks, played)
@@ -582,7 +585,7 @@ ways, as often longer (MOONS 500 unfold seed 5: 4.16 -> 5.41 x the bound) as sho
 
 
 def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
-           seed: int, k0: int, budget: _Budget | None = None) -> tuple[int, np.ndarray] | None:
+           seed: int, k0: int, budget: _Budget | None = None, stream: int = SEARCHES) -> tuple[int, np.ndarray] | None:
     """Group ``part`` brought home starting before sample ``k0`` (after which its other
     neighbours hold), while they still move: the first of the starts ``0, EARLY_STEP_S, ...``
     before ``k0`` from which it works, as ``(start sample, the members' samples (M, g, 2))``, or
@@ -614,7 +617,7 @@ def _early(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarra
             hold = np.broadcast_to(out[ks, members][None], (until - ks, len(part), 2))
             if not group.played_ok(hold, hold, field[ks:until], field[ks + 1 : until + 1]).all():
                 continue
-        rng = np.random.default_rng((seed, SEARCHES, ks, *part))
+        rng = np.random.default_rng((seed, stream, ks, *part))
         path = _connect(group, start, goal, rng, EARLY_ITERATIONS, goal_tree)
         if path is None:
             continue
