@@ -186,7 +186,8 @@ def test_a_rescue_searches_the_groups_without_a_way_again_after_the_others(stall
     """``rescue`` (a leg's last resort): a group that finds no way holds while the groups after it
     are searched, then each such group is searched again with RESCUE_EFFORT times the samples, in
     the field the others left. Here searches of 5 samples per member find no way for either group
-    of the stalled fold; searched again with 2,000 both do, and the leg verifies clean."""
+    of the stalled fold; searched again with 2,000 both do, and the leg verifies clean. A group
+    larger than RESCUE_UP_TO without a way ends the rescue at once."""
     fold, joints, dt = stalled
     floor = default_safety_margin_mm(fold.instrument)
     monkeypatch.setattr(groups_module, "EARLY_ITERATIONS", 0)
@@ -212,6 +213,11 @@ def test_a_rescue_searches_the_groups_without_a_way_again_after_the_others(stall
     assert fp.verify(fold, Trajectory(np.arange(len(out)) * dt, out)).ok
     monkeypatch.setattr(groups_module, "RESCUE_EFFORT", 1)  # (searched again no harder: still no way)
     assert groups(fold, joints, floor, dt, rescue=True) is None
+    calls.clear()
+    monkeypatch.setattr(groups_module, "RESCUE_EFFORT", 400)
+    monkeypatch.setattr(groups_module, "RESCUE_UP_TO", 3)  # (a group larger than that without a way ends it)
+    assert groups(fold, joints, floor, dt, rescue=True) is None
+    assert calls == [([0, 4, 5, 10], 1, False)]
 
 
 def test_a_leg_left_short_is_completed_by_the_rescue(stalled, monkeypatch):

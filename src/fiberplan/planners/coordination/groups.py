@@ -437,7 +437,7 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
     where the attempt left it while the groups after it are searched; then each such group is
     searched again, in the field the others left, with :data:`RESCUE_EFFORT` times the samples
     and :data:`RESCUE_SEARCHES` streams (its early starts from other streams); ``None`` if one
-    still finds none."""
+    still finds none, or as soon as one of more than :data:`RESCUE_UP_TO` members finds none."""
     target, end = leg.target, joints[-1]
     short = np.flatnonzero(~np.all(end == target, axis=1) & ~leg.locked)
     if not len(short):
@@ -489,7 +489,7 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
                 if moved is None:
                     # A leg is completed by group moves only where every group finds a way (the
                     # coordination layer keeps no partial one): the groups after this one need no search.
-                    if not rescue:
+                    if not rescue or len(part) > RESCUE_UP_TO:
                         return None
                     stuck.append(sorted(part))
                     continue
@@ -514,6 +514,13 @@ in 3-155 s each (on a loaded machine)."""
 
 RESCUE_SEARCHES = 3
 """Searches (random streams) of a group searched again in a leg's last resort (:data:`RESCUE_EFFORT`)."""
+
+RESCUE_UP_TO = 6
+"""Largest group searched again in a leg's last resort: a larger group without a way ends it.
+Groups of seven or eight cost 78-250 s at the first search's samples (MOONS 500, session 48);
+MOONS 500 random seed 0's group of seven, searched again, found no way in 71 s, for a plan 2.7 x
+as long to make and no shorter. The rescues that completed a leg searched groups of four to six
+(MOONS' zones 500 unfold seed 15, ``moons-capsules`` 500 unfold seed 21)."""
 
 
 def _move(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray], floor_mm: float, dt_s: float,
