@@ -510,7 +510,7 @@ it is searched again in a leg's last resort (:func:`groups` with ``rescue``). MO
 under MOONS' zones seed 15, the fold's first attempt (33 short): four groups of four to six
 members found no way at 2,000 samples per member (the leg ended 12 short after every attempt);
 searched again after the others, at 8,000 samples per member and three streams, each found one,
-in 3-155 s each (on a loaded machine)."""
+in 5-363 s each (on a machine shared with two or three other jobs)."""
 
 RESCUE_SEARCHES = 3
 """Searches (random streams) of a group searched again in a leg's last resort (:data:`RESCUE_EFFORT`)."""
