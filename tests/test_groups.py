@@ -201,11 +201,21 @@ def test_a_rescue_searches_the_groups_without_a_way_again_after_the_others(stall
         return moved
 
     monkeypatch.setattr(groups_module, "_move", spy)
+    early, streams = groups_module._early, []
+
+    def spy_early(*args):
+        streams.append(args[-1])
+        return early(*args)
+
+    monkeypatch.setattr(groups_module, "_early", spy_early)
     assert groups(fold, joints, floor, dt) is None  # (the first group without a way ends it)
     assert calls == [([0, 4, 5, 10], 1, False)]
     calls.clear()
     out = groups(fold, joints, floor, dt, rescue=True)
     assert calls == [([0, 4, 5, 10], 1, False), ([9, 16, 24, 34], 1, False), ([0, 4, 5, 10], 400, True), ([9, 16, 24, 34], 400, True)]
+    # (The early starts searched again from other streams than the first search's.)
+    assert groups_module.SEARCHES != groups_module.RESCUE_SEARCHES
+    assert streams == [groups_module.SEARCHES] * 3 + [groups_module.RESCUE_SEARCHES] * 2
     assert out is not None
     np.testing.assert_array_equal(out[0], joints[0])
     np.testing.assert_array_equal(out[-1], fold.target)

@@ -436,8 +436,9 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
     With ``rescue`` (a leg's last resort, ``legs.complete_leg``), a group that finds no way holds
     where the attempt left it while the groups after it are searched; then each such group is
     searched again, in the field the others left, with :data:`RESCUE_EFFORT` times the samples
-    and :data:`RESCUE_SEARCHES` streams (its early starts from other streams); ``None`` if one
-    still finds none, or as soon as one of more than :data:`RESCUE_UP_TO` members finds none."""
+    and :data:`RESCUE_SEARCHES` streams (the first search's streams carried on, and more; its
+    early starts from other streams); ``None`` if one still finds none, or as soon as one of more
+    than :data:`RESCUE_UP_TO` members finds none."""
     target, end = leg.target, joints[-1]
     short = np.flatnonzero(~np.all(end == target, axis=1) & ~leg.locked)
     if not len(short):
@@ -527,9 +528,10 @@ def _move(leg: Scenario, out: np.ndarray, part: list[int], nbrs: list[np.ndarray
           seed: int, budget: _Budget | None = None, effort: int = 1) -> np.ndarray | None:
     """``out`` with group ``part`` brought home (:func:`groups`): from the earliest start that
     :func:`_early` finds, else from the sample after which its other neighbours hold; ``None``
-    if its searches find no way. With ``effort`` > 1 (a rescue), the early starts are searched
-    from other random streams, and the latter with ``effort`` times :data:`ITERATIONS` and
-    :data:`RESCUE_SEARCHES` streams."""
+    if its searches find no way. With ``effort`` other than 1 (a rescue), the early starts are
+    searched from other random streams, and the latter with ``effort`` times :data:`ITERATIONS`
+    and :data:`RESCUE_SEARCHES` streams (the first :data:`SEARCHES` of them the first search's,
+    carried on past where it gave up)."""
     speeds = leg.instrument.speeds_rad_s
     members = np.array(part, dtype=np.int64)
     outer = np.setdiff1d(np.concatenate([nbrs[i] for i in part]), members)

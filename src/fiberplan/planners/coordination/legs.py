@@ -310,7 +310,8 @@ def _attempts(
     :data:`FALLBACK_ROUNDS` went beyond the single fallback attempt of before (see :class:`Leg`);
     with ``groups``, ``notes["grouped"]`` holds the first attempt completed by group moves, where
     every group found a way (a candidate: the attempts go on as without it), and the positioners
-    the group moves moved; where a group found none, ``notes["first"]`` holds the first attempt."""
+    the group moves moved; where group moves did not complete it (a group without a way, the
+    checks used up, or the time limit), ``notes["first"]`` holds the first attempt."""
     notes = {} if notes is None else notes
     if strict and leg.infeasible:  # a leg target that cannot be reached would break the joint between legs
         return leg.start[None].copy(), 0, False
