@@ -187,7 +187,8 @@ def test_a_rescue_searches_the_groups_without_a_way_again_after_the_others(stall
     are searched, then each such group is searched again with RESCUE_EFFORT times the samples, in
     the field the others left. Here searches of 5 samples per member find no way for either group
     of the stalled fold; searched again with 2,000 both do, and the leg verifies clean. A group
-    larger than RESCUE_UP_TO without a way ends the rescue at once."""
+    larger than RESCUE_UP_TO without a way ends the rescue at once. A rescue going on from where
+    the search without it stopped gives the same leg, bit for bit."""
     fold, joints, dt = stalled
     floor = default_safety_margin_mm(fold.instrument)
     monkeypatch.setattr(groups_module, "EARLY_ITERATIONS", 0)
@@ -221,6 +222,15 @@ def test_a_rescue_searches_the_groups_without_a_way_again_after_the_others(stall
     np.testing.assert_array_equal(out[-1], fold.target)
     assert np.all(np.abs(np.diff(out, axis=0)) <= fold.instrument.speeds_rad_s * dt * (1 + 1e-9))
     assert fp.verify(fold, Trajectory(np.arange(len(out)) * dt, out)).ok
+    # Going on from where the search without rescue stopped: the same leg, without searching the
+    # groups before it again (here the first group's first search).
+    stopped: dict = {}
+    assert groups(fold, joints, floor, dt, stopped=stopped) is None
+    assert stopped["part"] == [0, 4, 5, 10] and stopped["out"] is joints
+    calls.clear()
+    resumed = groups(fold, joints, floor, dt, rescue=True, resume=stopped)
+    assert calls == [([9, 16, 24, 34], 1, False), ([0, 4, 5, 10], 400, True), ([9, 16, 24, 34], 400, True)]
+    assert resumed is not None and resumed.tobytes() == out.tobytes()
     monkeypatch.setattr(groups_module, "RESCUE_EFFORT", 1)  # (searched again no harder: still no way)
     assert groups(fold, joints, floor, dt, rescue=True) is None
     calls.clear()
@@ -228,6 +238,8 @@ def test_a_rescue_searches_the_groups_without_a_way_again_after_the_others(stall
     monkeypatch.setattr(groups_module, "RESCUE_UP_TO", 3)  # (a group larger than that without a way ends it)
     assert groups(fold, joints, floor, dt, rescue=True) is None
     assert calls == [([0, 4, 5, 10], 1, False)]
+    calls.clear()
+    assert groups(fold, joints, floor, dt, rescue=True, resume=stopped) is None and calls == []
 
 
 def test_a_leg_left_short_is_completed_by_the_rescue(stalled, monkeypatch):

@@ -426,7 +426,8 @@ def _timed(path: np.ndarray, speeds: np.ndarray, dt_s: float) -> np.ndarray:
     return timed
 
 
-def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed: int = 0, rescue: bool = False) -> np.ndarray | None:
+def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed: int = 0, rescue: bool = False,
+           stopped: dict | None = None, resume: dict | None = None) -> np.ndarray | None:
     """``joints`` ``(K, N, 2)`` (an attempt of ``leg``) with the positioners it left short brought
     home by group moves, or ``None`` as soon as a group finds no way, if they use up
     :data:`CHECKS`, or if nobody is short.
@@ -438,7 +439,13 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
     searched again, in the field the others left, with :data:`RESCUE_EFFORT` times the samples
     and :data:`RESCUE_SEARCHES` streams (the first search's streams carried on, and more; its
     early starts from other streams); ``None`` if one still finds none, or as soon as one of more
-    than :data:`RESCUE_UP_TO` members finds none."""
+    than :data:`RESCUE_UP_TO` members finds none.
+
+    A search without ``rescue`` that stops at a group without a way leaves in ``stopped`` (a
+    dict) where it stopped; a rescue given that dict as ``resume`` (with the same ``leg``,
+    ``joints``, ``floor_mm``, ``dt_s`` and ``seed``) goes on from there instead of searching the
+    groups before it again: the same result, the groups' searches being seeded (with
+    :data:`CHECKS` finite, it counts only its own checks)."""
     target, end = leg.target, joints[-1]
     short = np.flatnonzero(~np.all(end == target, axis=1) & ~leg.locked)
     if not len(short):
@@ -478,18 +485,28 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
                 break
     out, budget = joints, _Budget(CHECKS)
     stuck: list[list[int]] = []  # (rescue: the groups that found no way, held)
+    go_on = (0, 0)  # (the unit, and the part in it, to search from)
+    if rescue and resume is not None:  # (going on from where the search without rescue stopped)
+        if len(resume["part"]) > RESCUE_UP_TO:
+            return None
+        out, stuck, go_on = resume["out"], [resume["part"]], (resume["unit"], resume["index"] + 1)
     try:
-        for unit in units:
-            if len(unit) > 1:
+        for u in range(go_on[0], len(units)):
+            unit = units[u]
+            first = go_on[1] if u == go_on[0] else 0
+            if len(unit) > 1 and first == 0:
                 moved = _move(leg, out, sorted(set().union(*unit)), nbrs, floor_mm, dt_s, seed, budget)
                 if moved is not None:
                     out = moved
                     continue
-            for part in unit:  # (one after the other: each starts once the ones before it are home)
+            for index in range(first, len(unit)):  # (one after the other: each starts once the ones before it are home)
+                part = unit[index]
                 moved = _move(leg, out, part, nbrs, floor_mm, dt_s, seed, budget)
                 if moved is None:
                     # A leg is completed by group moves only where every group finds a way (the
                     # coordination layer keeps no partial one): the groups after this one need no search.
+                    if not rescue and stopped is not None:
+                        stopped.update(out=out, unit=u, index=index, part=sorted(part))
                     if not rescue or len(part) > RESCUE_UP_TO:
                         return None
                     stuck.append(sorted(part))

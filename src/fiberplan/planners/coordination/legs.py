@@ -163,11 +163,12 @@ def complete_leg(
     notes: dict[str, Any] = {}
     joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo, notes, groups)
     grouped, carried = notes.pop("grouped", (None, ()))
-    first_attempt = notes.pop("first", None)
+    first_attempt, stopped = notes.pop("first", (None, None))
     if grouped is None and not complete and first_attempt is not None:
-        # The last resort: the first attempt's groups again, those without a way searched harder
-        # after the others (MOONS' zones, MOONS 500 unfold seed 15: 12 short after every attempt).
-        grouped, carried = _grouped(leg, first_attempt, solo, time_limit_s, rescue=True)
+        # The last resort: the first attempt's groups again (from where they stopped), those
+        # without a way searched harder after the others (MOONS' zones, MOONS 500 unfold seed 15:
+        # 12 short after every attempt).
+        grouped, carried = _grouped(leg, first_attempt, solo, time_limit_s, rescue=True, resume=stopped)
     if grouped is not None and (not complete or len(grouped) < len(joints)):
         joints, complete, notes["rescued"] = grouped, True, False
     else:
@@ -311,7 +312,8 @@ def _attempts(
     with ``groups``, ``notes["grouped"]`` holds the first attempt completed by group moves, where
     every group found a way (a candidate: the attempts go on as without it), and the positioners
     the group moves moved; where group moves did not complete it (a group without a way, the
-    checks used up, or the time limit), ``notes["first"]`` holds the first attempt."""
+    checks used up, or the time limit), ``notes["first"]`` holds the first attempt and where its
+    group moves stopped (``groups.groups``' ``stopped``, or ``None``)."""
     notes = {} if notes is None else notes
     if strict and leg.infeasible:  # a leg target that cannot be reached would break the joint between legs
         return leg.start[None].copy(), 0, False
@@ -341,11 +343,12 @@ def _attempts(
         at = at_targets(leg, end)
         if groups and solo is not None and k == 1 and not at.all():
             # A candidate beside the attempts that follow (complete_leg keeps the shorter).
-            grouped = _grouped(leg, joints, solo, time_limit_s)
+            stopped: dict[str, Any] = {}
+            grouped = _grouped(leg, joints, solo, time_limit_s, stopped=stopped)
             if grouped[0] is not None:
                 notes["grouped"] = grouped
             else:
-                notes["first"] = joints  # (for complete_leg's last resort)
+                notes["first"] = (joints, stopped or None)  # (for complete_leg's last resort)
         if at.all():  # (one piece: the planner's own array, not a copy of it: 200 MB at 50,000 positioners)
             return (pieces[0] if len(pieces) == 1 else np.concatenate(pieces)), k, True
         if k < attempts and int(at.sum()) > done_before:  # another attempt follows: it starts at the last arrival
@@ -499,11 +502,12 @@ def _until_last_arrival(leg: Scenario, joints: np.ndarray) -> np.ndarray:
 
 
 def _grouped(leg: Scenario, joints: np.ndarray, solo: tuple[float, float], time_limit_s: float | None,
-             rescue: bool = False) -> tuple[np.ndarray | None, tuple[int, ...]]:
+             rescue: bool = False, stopped: dict[str, Any] | None = None,
+             resume: dict[str, Any] | None = None) -> tuple[np.ndarray | None, tuple[int, ...]]:
     """An attempt ``joints`` of ``leg`` completed by group moves (:func:`.groups.groups`, with
-    ``rescue`` as there), trimmed, and the positioners they moved; ``(None, ())`` unless every
-    positioner ends on its target within ``time_limit_s``."""
-    grouped = group_moves(leg, joints, *solo, rescue=rescue)
+    ``rescue``, ``stopped`` and ``resume`` as there), trimmed, and the positioners they moved;
+    ``(None, ())`` unless every positioner ends on its target within ``time_limit_s``."""
+    grouped = group_moves(leg, joints, *solo, rescue=rescue, stopped=stopped, resume=resume)
     grouped = None if grouped is None else trim(grouped)  # (its stragglers may have moved last: the idle end goes)
     if (grouped is None or not at_targets(leg, grouped[-1]).all()
             or (time_limit_s is not None and (len(grouped) - 1) * solo[1] > time_limit_s)):
