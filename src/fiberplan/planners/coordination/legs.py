@@ -157,8 +157,9 @@ def complete_leg(
     instead of the further attempts' leg if that is incomplete or longer (``Leg.grouped`` names the
     positioners they moved, also where a restart or backward tail then re-planned the leg's end).
     Where a group found no way and the attempts leave the leg short, the first attempt's group
-    moves are made again as a last resort, the groups without a way searched harder after the
-    others (``groups.groups`` with ``rescue``); kept if every group then finds a way."""
+    moves go on from where they stopped as a last resort, the groups without a way searched
+    harder after the others (``groups.groups`` with ``rescue``); kept if every group then finds a
+    way."""
     t0 = time.perf_counter()
     notes: dict[str, Any] = {}
     joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo, notes, groups)
