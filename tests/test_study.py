@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fiberplan.studies import StudyError, finished_tasks, load_study, rates, run_study, wilson_interval
+from fiberplan.studies import StudyError, finished_tasks, load_study, rates, recorded_tasks, run_study, wilson_interval
 
 TIMING = ["plan_wall_s", "run_wall_s", "stat.loop_wall_s", "stat.gradient_time_s", "stat.safety_time_s", "traceback"]
 
@@ -125,6 +125,26 @@ def test_local_sweep_records_failures_and_skips_finished(tmp_path, failing_cell)
     run_study(spec, workers=2, progress=False)  # nothing left to run
     assert sorted(p.name for p in spec.parts_dir.iterdir()) == parts_before
     assert spec.out.stat().st_mtime_ns >= mtime
+
+
+def test_a_table_without_its_parts_is_kept_and_the_study_goes_on_from_it(tmp_path):
+    """A fresh clone has the table, not its parts: its runs are not made again, nor its rows lost."""
+    import shutil
+
+    spec = load_study(write_spec(tmp_path, seeds=2))
+    run_study(spec, workers=1, progress=False)
+    table, positioners = pd.read_parquet(spec.out), pd.read_parquet(spec.positioner_out)
+    shutil.rmtree(spec.parts_dir)
+    grown = load_study(write_spec(tmp_path, seeds=3))  # one more seed, the same table
+    assert len(recorded_tasks(grown)) == len(table) and not finished_tasks(grown)
+    assert run_study(grown, workers=1, progress=False) == len(table) + 6
+    after, after_positioners = pd.read_parquet(grown.out), pd.read_parquet(grown.positioner_out)
+    kept = after[after["task"].isin(table["task"])].reset_index(drop=True)
+    pd.testing.assert_frame_equal(kept, table)  # the timings too: not run again
+    assert sorted(after.loc[~after["task"].isin(table["task"]), "seed"]) == [2] * 6
+    old = after_positioners[after_positioners["task"].isin(table["task"])].reset_index(drop=True)
+    pd.testing.assert_frame_equal(old, positioners)
+    assert len(after_positioners) == len(positioners) + 3 * (7 + 19)
 
 
 def test_sweep_on_a_real_local_dask_cluster(tmp_path):

@@ -728,11 +728,11 @@ def sweep(spec: Path, scheduler: str | None, workers: int | None, quiet: bool) -
 
     Re-running the same command after an interruption skips the finished runs.
     """
-    from fiberplan.studies import finished_tasks, load_study, run_study
+    from fiberplan.studies import load_study, recorded_tasks, run_study
 
     study = load_study(spec)
     check_output_path(study.out, what=f"study {str(spec)!r}: out", suffixes=PARQUET_SUFFIXES, inputs=[spec])
-    already = len(finished_tasks(study))
+    already = len(recorded_tasks(study))
     click.echo(f"study {study.name}: {len(study.tasks)} runs, {already} already done -> {study.out}", err=True)
     rows = run_study(study, workers=workers, scheduler=scheduler, progress=not quiet)
     import pandas as pd

@@ -16,7 +16,15 @@ from fiberplan.studies.compare import CompareResult, add_gaps, format_table, run
 from fiberplan.studies.reference import central_reference
 from fiberplan.studies.runner import ROW_COLUMNS, RunSpec, run_one, write_rows
 from fiberplan.studies.scenarios import HARD_KIND, STUDY_KINDS, hard_scenario, study_scenario
-from fiberplan.studies.sweep import StudySpec, finished_tasks, load_study, lost_tasks, run_study, study_from_dict
+from fiberplan.studies.sweep import (
+    StudySpec,
+    finished_tasks,
+    load_study,
+    lost_tasks,
+    recorded_tasks,
+    run_study,
+    study_from_dict,
+)
 
 __all__ = [
     "HARD_KIND",
@@ -36,6 +44,7 @@ __all__ = [
     "load_study",
     "lost_tasks",
     "rates",
+    "recorded_tasks",
     "run_compare",
     "run_one",
     "run_study",

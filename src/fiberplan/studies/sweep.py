@@ -9,7 +9,9 @@ distributed cluster, and the sweep is resumable and loss-free:
   (atomic rename), so nothing finished is lost if the driver is killed (even ``kill -9``);
 - the table ``<out>`` is rebuilt from the parts as runs finish (at most every few seconds)
   and at the end;
-- re-running the same command skips every run whose part exists;
+- re-running the same command skips every run whose part exists, and every finished run of
+  the table when its parts are gone (a fresh clone has the table only): those rows get their
+  parts again (:func:`adopt_table`), so the rebuilt table keeps them;
 - a run that raises is recorded as a row with ``status = "error"`` and the message (a
   deterministic result of its inputs, kept on resume); a run lost to the machinery (its
   worker process died, its Dask worker was lost) is retried during the sweep (``retries``
@@ -325,6 +327,51 @@ def lost_tasks(spec: StudySpec) -> set[str]:
     return {p.name.split(".")[0] for p in _parts(spec) if p.name.endswith(".lost.parquet")} - finished_tasks(spec)
 
 
+def _unadopted_rows(spec: StudySpec) -> Any:
+    """The existing table's finished rows whose task has no part (None without a table)."""
+    if not spec.out.is_file():
+        return None
+    import pandas as pd
+
+    table = pd.read_parquet(spec.out)
+    if "task" not in table.columns or "status" not in table.columns:
+        raise StudyError(f"{spec.out} is not a study table (no 'task' or 'status' column), so the study cannot go on "
+                         "from it; move it away or set another `out` in the study file")
+    return table[(table["status"] != STATUS_LOST) & ~table["task"].isin(finished_tasks(spec))]
+
+
+def recorded_tasks(spec: StudySpec) -> set[str]:
+    """Keys of the tasks a run of the study skips: those with a part, and the table's finished rows."""
+    rows = _unadopted_rows(spec)
+    keys = {t.key for t in spec.tasks}
+    return (finished_tasks(spec) | (set() if rows is None else set(rows["task"]))) & keys
+
+
+def adopt_table(spec: StudySpec) -> int:
+    """Give every finished row of an existing table without a part its part again; returns how many.
+
+    The parts are working files (a fresh clone has the table without them): without this, a
+    resumed study would run those tasks again and, until they finished, rebuild the table
+    without their rows. A row recorded ``lost`` is not adopted (it runs again), nor a row whose
+    task already has a part (the part is the newer result). Per-positioner rows come along from
+    ``<out stem>.positioners.parquet`` when the study writes it.
+    """
+    rows = _unadopted_rows(spec)
+    if rows is None or rows.empty:
+        return 0
+    import pandas as pd
+
+    positioners = pd.read_parquet(spec.positioner_out) if spec.per_positioner and spec.positioner_out.is_file() else None
+    spec.parts_dir.mkdir(parents=True, exist_ok=True)
+    for key, row in rows.groupby("task", sort=False):
+        if positioners is not None:  # written first: a run's part is what marks it finished
+            with atomic_path(spec.parts_dir / f"{key}.positioners.parquet") as tmp:
+                positioners[positioners["task"] == key].reset_index(drop=True).to_parquet(tmp, index=False)
+        with atomic_path(spec.parts_dir / f"{key}.parquet") as tmp:
+            row.reset_index(drop=True).to_parquet(tmp, index=False)
+    return rows["task"].nunique()
+
+
 def consolidate(spec: StudySpec) -> int:
     """Rebuild the results table (and the per-positioner table) from the parts. Returns the row count."""
     import pandas as pd
@@ -487,6 +534,7 @@ def _run_study(spec: StudySpec, workers: int | None, scheduler: str | None, prog
     if spec.parts_dir.is_dir():
         for stale in spec.parts_dir.glob(".*.part.parquet"):  # left by a writer that was killed
             stale.unlink(missing_ok=True)
+    adopt_table(spec)
     done = finished_tasks(spec)
     todo = [t for t in spec.tasks if t.key not in done]
     bar = _progress_bar(len(spec.tasks), len(spec.tasks) - len(todo)) if progress else None
