@@ -224,9 +224,10 @@ def test_a_rescue_searches_the_groups_without_a_way_again_after_the_others(stall
     assert fp.verify(fold, Trajectory(np.arange(len(out)) * dt, out)).ok
     # Going on from where the search without rescue stopped: the same leg, without searching the
     # groups before it again (here the first group's first search).
-    stopped: dict = {}
-    assert groups(fold, joints, floor, dt, stopped=stopped) is None
-    assert stopped["part"] == [0, 4, 5, 10] and stopped["out"] is joints
+    stops: list = []
+    assert groups(fold, joints, floor, dt, stopped=stops) is None
+    (stopped,) = stops
+    assert stopped.part == [0, 4, 5, 10] and stopped.out is joints and (stopped.unit, stopped.index) == (0, 0)
     calls.clear()
     resumed = groups(fold, joints, floor, dt, rescue=True, resume=stopped)
     assert calls == [([9, 16, 24, 34], 1, False), ([0, 4, 5, 10], 400, True), ([9, 16, 24, 34], 400, True)]

@@ -43,6 +43,7 @@ beside them assumed); the coordination layer uses the result only when every gro
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -426,8 +427,20 @@ def _timed(path: np.ndarray, speeds: np.ndarray, dt_s: float) -> np.ndarray:
     return timed
 
 
+@dataclasses.dataclass(frozen=True)
+class Stop:
+    """Where :func:`groups` without ``rescue`` stopped: at ``part`` (its members, sorted), the
+    ``index``-th group of the ``unit``-th unit, which found no way, with ``out`` the joints
+    ``(K, N, 2)`` the groups before it had brought home."""
+
+    out: np.ndarray
+    unit: int
+    index: int
+    part: list[int]
+
+
 def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed: int = 0, rescue: bool = False,
-           stopped: dict | None = None, resume: dict | None = None) -> np.ndarray | None:
+           stopped: list[Stop] | None = None, resume: Stop | None = None) -> np.ndarray | None:
     """``joints`` ``(K, N, 2)`` (an attempt of ``leg``) with the positioners it left short brought
     home by group moves, or ``None`` as soon as a group finds no way, if they use up
     :data:`CHECKS`, or if nobody is short.
@@ -441,8 +454,8 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
     early starts from other streams); ``None`` if one still finds none, or as soon as one of more
     than :data:`RESCUE_UP_TO` members finds none.
 
-    A search without ``rescue`` that stops at a group without a way leaves in ``stopped`` (a
-    dict) where it stopped; a rescue given that dict as ``resume`` (with the same ``leg``,
+    A search without ``rescue`` that stops at a group without a way appends to ``stopped`` where
+    it stopped (a :class:`Stop`); a rescue given that as ``resume`` (with the same ``leg``,
     ``joints``, ``floor_mm``, ``dt_s`` and ``seed``) goes on from there instead of searching the
     groups before it again: the same result, the groups' searches being seeded (with
     :data:`CHECKS` finite, it counts only its own checks)."""
@@ -487,9 +500,9 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
     stuck: list[list[int]] = []  # (rescue: the groups that found no way, held)
     go_on = (0, 0)  # (the unit, and the part in it, to search from)
     if rescue and resume is not None:  # (going on from where the search without rescue stopped)
-        if len(resume["part"]) > RESCUE_UP_TO:
+        if len(resume.part) > RESCUE_UP_TO:
             return None
-        out, stuck, go_on = resume["out"], [resume["part"]], (resume["unit"], resume["index"] + 1)
+        out, stuck, go_on = resume.out, [resume.part], (resume.unit, resume.index + 1)
     try:
         for u in range(go_on[0], len(units)):
             unit = units[u]
@@ -506,7 +519,7 @@ def groups(leg: Scenario, joints: np.ndarray, floor_mm: float, dt_s: float, seed
                     # A leg is completed by group moves only where every group finds a way (the
                     # coordination layer keeps no partial one): the groups after this one need no search.
                     if not rescue and stopped is not None:
-                        stopped.update(out=out, unit=u, index=index, part=sorted(part))
+                        stopped.append(Stop(out, u, index, sorted(part)))
                     if not rescue or len(part) > RESCUE_UP_TO:
                         return None
                     stuck.append(sorted(part))

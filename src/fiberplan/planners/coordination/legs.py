@@ -21,6 +21,7 @@ import numpy as np
 
 from fiberplan.geometry import motion_bound, path_clearance, point_extents
 from fiberplan.metrics import arrival_times
+from fiberplan.planners.coordination.groups import Stop
 from fiberplan.planners.coordination.groups import groups as group_moves
 from fiberplan.planners.coordination.settings import REVERSE_LEG, REVERSED_LEGS, TAIL_FORWARD
 from fiberplan.planners.coordination.solo import solo_moves
@@ -344,12 +345,12 @@ def _attempts(
         at = at_targets(leg, end)
         if groups and solo is not None and k == 1 and not at.all():
             # A candidate beside the attempts that follow (complete_leg keeps the shorter).
-            stopped: dict[str, Any] = {}
+            stopped: list[Stop] = []
             grouped = _grouped(leg, joints, solo, time_limit_s, stopped=stopped)
             if grouped[0] is not None:
                 notes["grouped"] = grouped
             else:
-                notes["first"] = (joints, stopped or None)  # (for complete_leg's last resort)
+                notes["first"] = (joints, stopped[0] if stopped else None)  # (for complete_leg's last resort)
         if at.all():  # (one piece: the planner's own array, not a copy of it: 200 MB at 50,000 positioners)
             return (pieces[0] if len(pieces) == 1 else np.concatenate(pieces)), k, True
         if k < attempts and int(at.sum()) > done_before:  # another attempt follows: it starts at the last arrival
@@ -503,8 +504,8 @@ def _until_last_arrival(leg: Scenario, joints: np.ndarray) -> np.ndarray:
 
 
 def _grouped(leg: Scenario, joints: np.ndarray, solo: tuple[float, float], time_limit_s: float | None,
-             rescue: bool = False, stopped: dict[str, Any] | None = None,
-             resume: dict[str, Any] | None = None) -> tuple[np.ndarray | None, tuple[int, ...]]:
+             rescue: bool = False, stopped: list[Stop] | None = None,
+             resume: Stop | None = None) -> tuple[np.ndarray | None, tuple[int, ...]]:
     """An attempt ``joints`` of ``leg`` completed by group moves (:func:`.groups.groups`, with
     ``rescue``, ``stopped`` and ``resume`` as there), trimmed, and the positioners they moved;
     ``(None, ())`` unless every positioner ends on its target within ``time_limit_s``."""
