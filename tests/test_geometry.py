@@ -395,7 +395,7 @@ def test_the_safety_layers_clearances_are_clearance_between_bit_for_bit(name):
     assert clearance_rows(inst, base_i[:0], orient_i[:0], qi[:0], base_j[:0], orient_j[:0], qj[:0]).shape == (0, expected.shape[1])
 
 
-@pytest.mark.parametrize("name", ["desi", "moons-capsules", "sdss"])
+@pytest.mark.parametrize("name", ["desi", "moons-capsules", "sdss", "moons"])
 def test_clearances_read_by_index_are_clearance_rows_bit_for_bit(name):
     # Group moves' pairs read by index from capsule ends placed once (capsule_ends_rows,
     # indexed_clearances) against clearance_rows' smallest per pair: rows shared by many pairs,

@@ -3,13 +3,15 @@ and the neighbours in their way brought home together, checked by the verifier."
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
 import pytest
 
 import fiberplan as fp
-from fiberplan.geometry import default_safety_margin_mm
+from fiberplan.geometry import clearance_rows, default_safety_margin_mm
+from fiberplan.instrument_io import load_instrument
 from fiberplan.layout import neighbour_lists
 from fiberplan.planners.coordination import groups as groups_module
 from fiberplan.planners.coordination.groups import _Group, groups
@@ -272,23 +274,37 @@ def test_a_leg_left_short_is_completed_by_the_rescue(stalled, monkeypatch):
     assert fp.verify(fold, Trajectory(np.arange(len(done.joints)) * dt, done.joints)).ok
 
 
-def test_a_groups_clearances_by_index_are_the_pairs_own(stalled):
-    """On a capsule instrument a group reads its pairs by index from capsules placed once: the
-    same values, bit for bit, as the pairs' own rows (the path kept for polygon zones), with the
-    neighbours held still and moving."""
+def _pairs_own(group: _Group, x: np.ndarray, q_outer: np.ndarray | None = None) -> np.ndarray:
+    """:meth:`_Group.clearance` from each pair's own rows (:func:`clearance_rows`), the reference."""
+    leg, m = group.leg, len(x)
+    a, b, o = group.inner[:, 0], group.inner[:, 1], group.outer[:, 0]
+    q_outer = np.broadcast_to(group.q_outer, (m, len(o), 2)) if q_outer is None else q_outer
+    qi = np.concatenate([x[:, a], x[:, o]], axis=1).reshape(-1, 2)
+    qj = np.concatenate([x[:, b], q_outer], axis=1).reshape(-1, 2)
+    i = np.tile(np.concatenate([group.members[a], group.members[o]]), m)
+    j = np.tile(np.concatenate([group.members[b], group.outer[:, 1]]), m)
+    return clearance_rows(leg.instrument, leg.base_xy[i], leg.orient[i], qi, leg.base_xy[j], leg.orient[j], qj).min(axis=1).reshape(m, -1)
+
+
+@pytest.mark.parametrize("zoned", [False, True])
+def test_a_groups_clearances_by_index_are_the_pairs_own(stalled, zoned):
+    """A group reads its pairs by index from capsules (polygon zones: their edges) placed once:
+    the same values, bit for bit, as the pairs' own rows, with the neighbours held still and
+    moving, on a capsule instrument and under MOONS' zones."""
     fold, joints, _ = stalled
+    if zoned:  # (the same bases and configurations under MOONS' own zones)
+        fold = dataclasses.replace(fold, instrument=load_instrument("moons"))
     nbrs = neighbour_lists(fold.pairs, fold.n_positioners)[0]
     group = _Group(fold, joints[-1], [4, 24, 5], nbrs, default_safety_margin_mm(fold.instrument))
-    assert group._indexed and len(group.inner) and len(group.outer)
+    assert len(group.inner) and len(group.outer) and bool(fold.instrument.polygons) == zoned
     rng = np.random.default_rng(3)
     x = rng.uniform(group.lo, group.hi, (40, len(group.lo))).reshape(40, 3, 2)
     q = joints[rng.integers(0, len(joints), 40)][:, group.outer[:, 1]]
-    fast = [group.clearance(x), group.clearance(x, q), group.clearance(x[:1])]
-    group._indexed = False
-    slow = [group.clearance(x), group.clearance(x, q), group.clearance(x[:1])]
-    for a, b in zip(fast, slow, strict=True):
-        assert a.shape == b.shape and a.tobytes() == b.tobytes()
-    assert (slow[0] < 0).any() and (slow[0] > 0).any()
+    held = _pairs_own(group, x)
+    for got, expected in ((group.clearance(x), held), (group.clearance(x, q), _pairs_own(group, x, q)),
+                          (group.clearance(x[:1]), held[:1])):
+        assert got.shape == expected.shape and got.tobytes() == expected.tobytes()
+    assert (held < 0).any() and (held > 0).any()
 
 
 def test_no_way_means_no_group_moves(stalled, monkeypatch):

@@ -329,6 +329,55 @@ def zone_clearances(si: np.ndarray, ei: np.ndarray, sj: np.ndarray, ej: np.ndarr
 
 
 @numba.njit(cache=True, error_model="numpy", nogil=True)
+def zone_indexed_clearances(start: np.ndarray, end: np.ndarray, centres: np.ndarray, i_index: np.ndarray, j_index: np.ndarray,
+                            pair_a: np.ndarray, pair_b: np.ndarray, disc_radius: np.ndarray, pair_poly_a: np.ndarray,
+                            pair_poly_b: np.ndarray, pair_radius_sum: np.ndarray, combo_pair: np.ndarray, combo_ca: np.ndarray,
+                            combo_cb: np.ndarray, combo_radii: np.ndarray, zone_rows: np.ndarray, zone_offsets: np.ndarray,
+                            zone_is_polygon: np.ndarray, exact_below: float, out: np.ndarray) -> None:  # pragma: no cover
+    """``out[m]``: the smallest over the combinations of :func:`zone_clearances`' ``clear`` (the
+    same arithmetic: every combination's value as it computes it, then the same lowering) for
+    the capsule ends ``start``, ``end`` ``(R, C, 2)`` (their zones' disc centres ``centres``) of
+    row ``i_index[m]`` against row ``j_index[m]``: :func:`indexed_smallest` for polygon zones
+    (group moves' members at many configurations against neighbours held still)."""
+    n_p = pair_a.shape[0]
+    bounds = np.empty(n_p)
+    depth = np.empty(n_p)
+    for m in range(i_index.shape[0]):
+        u, v = i_index[m], j_index[m]
+        for p in range(n_p):
+            za, zb = pair_a[p], pair_b[p]
+            dx, dy = centres[u, za, 0] - centres[v, zb, 0], centres[u, za, 1] - centres[v, zb, 1]
+            bounds[p] = np.sqrt(dx * dx + dy * dy) - disc_radius[za] - disc_radius[zb]
+        lowered = False
+        for p in range(n_p):
+            depth[p] = 0.0
+            if (pair_poly_a[p] or pair_poly_b[p]) and bounds[p] <= 0.0:
+                za, zb = pair_a[p], pair_b[p]
+                rows_a, rows_b = zone_rows[zone_offsets[za]:zone_offsets[za + 1]], zone_rows[zone_offsets[zb]:zone_offsets[zb + 1]]
+                deep = 0.0
+                if pair_poly_b[p]:  # zone a of i inside polygon b of j
+                    deep = _maximum(deep, _inside_depth(start[u], end[u], rows_a, not zone_is_polygon[za], start[v], rows_b))
+                if pair_poly_a[p]:  # zone b of j inside polygon a of i
+                    deep = _maximum(deep, _inside_depth(start[v], end[v], rows_b, not zone_is_polygon[zb], start[u], rows_a))
+                depth[p] = deep
+                lowered = lowered or deep > 0.0
+        best = 0.0
+        for k in range(combo_pair.shape[0]):
+            p = combo_pair[k]
+            bound = bounds[p]
+            if bound < exact_below:
+                a, b = combo_ca[k], combo_cb[k]
+                c = _segment_pair(start[u, a, 0], start[u, a, 1], end[u, a, 0], end[u, a, 1],
+                                  start[v, b, 0], start[v, b, 1], end[v, b, 0], end[v, b, 1])[0] - combo_radii[k]
+            else:
+                c = bound
+            if lowered and depth[p] > 0.0:
+                c = _minimum(c, -(depth[p] + pair_radius_sum[p]))
+            best = c if k == 0 else _minimum(best, c)
+        out[m] = best
+
+
+@numba.njit(cache=True, error_model="numpy", nogil=True)
 def zone_smallest(si: np.ndarray, ei: np.ndarray, ci: np.ndarray, i_index: np.ndarray, sj: np.ndarray, ej: np.ndarray, cj: np.ndarray,
                   j_index: np.ndarray, pair_a: np.ndarray, pair_b: np.ndarray, disc_radius: np.ndarray, pair_poly_a: np.ndarray,
                   pair_poly_b: np.ndarray, pair_radius_sum: np.ndarray, pair_combos: np.ndarray, pair_offsets: np.ndarray,

@@ -415,7 +415,7 @@ def clearance_rows(
 def capsule_ends_rows(instrument: Instrument, base_xy: np.ndarray, orient: np.ndarray, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The capsule ends ``(M, C, 2)`` (start, end) of ``(M, 2)`` joints as :func:`capsule_segments`
     places them, from numpy's cosines and sines and :func:`capsule_kernels.capsule_ends` (for
-    :func:`clearance_rows` and :func:`indexed_clearances`). Capsule instruments only (no polygon zones)."""
+    :func:`clearance_rows` and :func:`indexed_clearances`; a polygon zone's edges are capsules too)."""
     on_alpha, start_mm, end_mm, _, _ = capsule_tables(instrument)
     a = joints[:, 0] + orient
     ab = a + joints[:, 1]
@@ -432,7 +432,11 @@ def capsule_ends_rows(instrument: Instrument, base_xy: np.ndarray, orient: np.nd
 def indexed_clearances(instrument: Instrument, start: np.ndarray, end: np.ndarray, i_index: np.ndarray, j_index: np.ndarray) -> np.ndarray:
     """``(M,)``: for each pair, the smallest of :func:`clearance_rows`' values (bit for bit) over
     the combinations, of the positioner whose capsule ends (:func:`capsule_ends_rows`) are row
-    ``i_index[m]`` against row ``j_index[m]``."""
+    ``i_index[m]`` against row ``j_index[m]`` (polygon zones: :func:`fiberplan.zones.indexed_clearances`)."""
+    if instrument.polygons:
+        from fiberplan import zones
+
+        return zones.indexed_clearances(instrument, start, end, i_index, j_index)
     _, _, _, combos, combo_radii = capsule_tables(instrument)
     out = np.empty(len(i_index))
     capsule_kernels.indexed_smallest(start, end, np.ascontiguousarray(i_index, dtype=np.int64), np.ascontiguousarray(j_index, dtype=np.int64),

@@ -166,6 +166,26 @@ def clearances(
     return clear, dist, s, t, exact
 
 
+def indexed_clearances(instrument: Instrument, start: np.ndarray, end: np.ndarray, i_index: np.ndarray,
+                       j_index: np.ndarray) -> np.ndarray:
+    """``(M,)``: ``clearances(...)[0].min(axis=1)`` (bit for bit) of the configuration whose
+    capsule ends are row ``i_index[m]`` of ``start``, ``end`` ``(R, C, 2)`` against row
+    ``j_index[m]``: every zone's disc placed once per row, the pairs read by index
+    (``fiberplan.geometry.indexed_clearances`` on an instrument with polygon zones)."""
+    tables = _tables(instrument)
+    start, end = (np.ascontiguousarray(a, dtype=np.float64) for a in (start, end))
+    i_index, j_index = (np.ascontiguousarray(a, dtype=np.int64) for a in (i_index, j_index))
+    for name, index in (("i_index", i_index), ("j_index", j_index)):
+        if index.size and (int(index.min()) < 0 or int(index.max()) >= len(start)):  # the compiled loop checks no bounds
+            raise ValueError(f"{name} outside [0, {len(start)})")
+    out = np.empty(len(i_index))
+    capsule_kernels.zone_indexed_clearances(
+        start, end, _centres(tables, start, end), i_index, j_index, tables.pair_a, tables.pair_b, tables.disc_radius,
+        tables.pair_poly_a, tables.pair_poly_b, tables.pair_radius_sum, tables.combo_pair, tables.combo_ca, tables.combo_cb,
+        tables.combo_radii, tables.zone_rows_flat, tables.zone_offsets, tables.zone_is_polygon, EXACT_BELOW_MM, out)
+    return out
+
+
 def smallest(instrument: Instrument, start_i: np.ndarray, end_i: np.ndarray, start_j: np.ndarray, end_j: np.ndarray,
              exact_below: float = EXACT_BELOW_MM) -> np.ndarray:
     """The smallest clearance over the checked combinations, for capsule ends ``(..., C, 2)``

@@ -124,9 +124,8 @@ class _Budget:
 
 
 CACHED_SIZES = 32
-"""Sizes of clearance call whose arrays a group keeps (its pairs' bases and orientations, or on
-capsule instruments its members' and the index arrays; a few MB; all of them, over 200 sizes on
-MOONS 61 unfold seed 6, held over 100 MB a group)."""
+"""Sizes of clearance call whose arrays a group keeps (its members' and the index arrays; a few
+MB; all of them, over 200 sizes on MOONS 61 unfold seed 6, held over 100 MB a group)."""
 
 
 class _Group:
@@ -147,48 +146,23 @@ class _Group:
         self.inner = np.array(inner, dtype=np.int64).reshape(-1, 2)
         self.outer = np.array(outer, dtype=np.int64).reshape(-1, 2)
         self.q_outer = q[self.outer[:, 1]]
-        self._i = np.concatenate([self.members[self.inner[:, 0]], self.members[self.outer[:, 0]]])
-        self._j = np.concatenate([self.members[self.inner[:, 1]], self.outer[:, 1]])
-        self._rows: dict[int, tuple[np.ndarray, ...]] = {}  # M -> the pairs' bases and orientations, M times
         self._index_rows: dict[tuple[int, bool], tuple[np.ndarray, ...]] = {}  # (M, neighbours moving) -> arrays for M configurations
-        # Capsule instruments: the capsules of the neighbours held still are placed once, and each
-        # configuration places the members' only (:func:`capsule_ends_rows`); the pairs are read by
-        # index (:func:`indexed_clearances`), the same values as :func:`clearance_rows` gives.
-        self._indexed = not leg.instrument.polygons
-        if self._indexed:
-            j = self.outer[:, 1]
-            self._held = capsule_ends_rows(leg.instrument, leg.base_xy[j], leg.orient[j], self.q_outer)
+        # The capsules (polygon zones: their edges) of the neighbours held still are placed once,
+        # and each configuration places the members' only (:func:`capsule_ends_rows`); the pairs
+        # are read by index (:func:`indexed_clearances`), the same values as :func:`clearance_rows` gives.
+        j = self.outer[:, 1]
+        self._held = capsule_ends_rows(leg.instrument, leg.base_xy[j], leg.orient[j], self.q_outer)
         self.rho = point_extents(leg.instrument)
         lim = leg.instrument.limits_rad
         self.lo, self.hi = np.tile(lim[:, 0], len(members)), np.tile(lim[:, 1], len(members))
 
     def clearance(self, x: np.ndarray, q_outer: np.ndarray | None = None) -> np.ndarray:
         """``(M, P)`` clearances of the group's pairs (inner, then outer) at configurations ``x``
-        ``(M, g, 2)``, the outer neighbours where they hold or, given, at ``q_outer`` ``(M, len(outer), 2)``."""
-        leg, m = self.leg, len(x)
+        ``(M, g, 2)``, the outer neighbours where they hold or, given, at ``q_outer`` ``(M, len(outer), 2)``:
+        the members' capsules placed at each configuration, the outer neighbours' once where they
+        hold (else at each), every pair read by index."""
         if self.budget is not None:
-            self.budget.spend(m * (len(self.inner) + len(self.outer)))
-        if self._indexed:
-            return self._clearance_indexed(x, q_outer)
-        a, b = self.inner[:, 0], self.inner[:, 1]
-        o = self.outer[:, 0]
-        qi = np.concatenate([x[:, a], x[:, o]], axis=1).reshape(-1, 2)
-        q_outer = np.broadcast_to(self.q_outer, (m, len(o), 2)) if q_outer is None else q_outer
-        qj = np.concatenate([x[:, b], q_outer], axis=1).reshape(-1, 2)
-        rows = self._rows.get(m)
-        if rows is None:  # (a search asks for a few sizes thousands of times: the first few are kept)
-            ii, jj = np.tile(self._i, m), np.tile(self._j, m)
-            rows = (leg.base_xy[ii], leg.orient[ii], leg.base_xy[jj], leg.orient[jj])
-            if len(self._rows) < CACHED_SIZES:
-                self._rows[m] = rows
-        base_i, orient_i, base_j, orient_j = rows
-        c = clearance_rows(leg.instrument, base_i, orient_i, qi, base_j, orient_j, qj)
-        return c.min(axis=1).reshape(m, -1)
-
-    def _clearance_indexed(self, x: np.ndarray, q_outer: np.ndarray | None) -> np.ndarray:
-        """:meth:`clearance` on a capsule instrument: the members' capsules placed at each of the
-        ``M`` configurations, the outer neighbours' once where they hold (``q_outer`` as the group
-        was made with; else at each), every pair read by index."""
+            self.budget.spend(len(x) * (len(self.inner) + len(self.outer)))
         leg, m, g, n_out = self.leg, len(x), len(self.members), len(self.outer)
         key = (m, q_outer is not None)
         rows = self._index_rows.get(key)
