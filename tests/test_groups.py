@@ -496,19 +496,20 @@ def test_the_grouped_first_attempt_is_kept_where_the_attempts_after_it_are_longe
     assert report.ok
 
 
-def test_route_groups_plans_verified_and_the_default_unchanged():
-    """On with the layer, verified and complete; off by default: MOONS 61 unfold seed 0 as
-    planned before group moves existed (session 43's hash)."""
+def test_route_groups_plans_verified_and_off_as_before():
+    """On (the default since session 50) with the layer, verified and complete; off: MOONS 61
+    unfold seed 0 as planned before group moves existed (session 43's hash)."""
     import hashlib
     import json
     from pathlib import Path
 
     sc = fp.make_scenario("moons-capsules", 61, "unfold", 6)
-    on = fp.plan(sc, "mpc", {"route_groups": True})
+    on = fp.plan(sc, "mpc")
+    assert on.settings["route_groups"] and on.stats["n_grouped"] > 0
     report = fp.verify(sc, on.trajectory)
     assert report.ok and fp.summarize(on, report)["reached"] == 61
     stored = json.loads((Path(__file__).parents[1] / "benchmarks/results/hashes_s43_final.json").read_text())
-    default = fp.plan(fp.make_scenario("moons-capsules", 61, "unfold", 0), "mpc")
+    default = fp.plan(fp.make_scenario("moons-capsules", 61, "unfold", 0), "mpc", {"route_groups": False})
     digest = hashlib.sha256(np.ascontiguousarray(default.trajectory.joints).tobytes()).hexdigest()
     assert digest == stored["runs"]["moons-capsules-61-unfold-0"]["joints_sha256"]
 
@@ -519,8 +520,8 @@ def test_route_groups_is_not_longer_where_the_paired_fold_is_shorter():
     fold without them is long, gives 13.65 s: a fold that group moves completed straggled, so the
     paired fold is tried too, and group moves never make this plan longer."""
     sc = fp.make_scenario("moons-capsules", 61, "unfold", 7)
-    off = fp.plan(sc, "mpc")
-    on = fp.plan(sc, "mpc", {"route_groups": True})
+    off = fp.plan(sc, "mpc", {"route_groups": False})
+    on = fp.plan(sc, "mpc")
     names = [c["strategy"] for c in on.stats["candidates"]]
     assert "reverse (paired timed paths)" in names
     assert on.trajectory.times[-1] <= off.trajectory.times[-1]

@@ -18,7 +18,8 @@ limits and hard stops, and starts where the original ended. So (``formulations/c
   still short, and the neighbours they need, through the datum, everyone else holding) and the
   **two-leg** plan. It is never worse than the two-leg plan: a candidate slower than it, or
   leaving more short, is not returned. Whatever the first choice, if it leaves positioners
-  short, or is complete only through the later fallback rounds inside a leg (``legs.Leg.rescued``),
+  short, or is complete only through the later fallback rounds inside a leg (``legs.Leg.rescued``)
+  or through group moves (``legs.Leg.grouped``),
   the fallback planner plans the whole move (its own route and in-leg fallback), then the direct
   plan is the fallback;
 - ``direct``: the planner alone.

@@ -1,7 +1,7 @@
 """Group moves: the positioners a leg's first attempt leaves short go home together with the
 neighbours in their way, by a search in their joint configurations together, everyone around
 them holding still (``formulations/coordination.md``, Completing a leg; setting
-``route_groups``, off by default).
+``route_groups``, on by default since session 50).
 
 A stalled fold (MOONS 500, session 38) has a few stragglers whose way home sweeps over a
 neighbour both where that neighbour started and where it folded: neither can go first along its

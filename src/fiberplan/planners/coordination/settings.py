@@ -38,7 +38,7 @@ class RouteSettings:
                                            "schedule (reference 003), alone or through a partial retraction of those it leaves "
                                            "short; kept where shorter (0: never)", unit="positioners", low=0, high=1_000_000,
                                            group="route")
-    route_rescue_up_to: int = setting(200, "a complete plan that needed the fallback planner's rounds inside a leg (rescued) is also "
+    route_rescue_up_to: int = setting(200, "a complete plan that needed the fallback planner's rounds inside a leg (rescued) or group moves is also "
                                       "compared with the fallback planner's whole move and the direct plan on fields of at most this "
                                       "many positioners; above, it is kept as it is (a plan left short is always compared)",
                                       unit="positioners", low=0, high=1_000_000, group="route")
@@ -46,7 +46,7 @@ class RouteSettings:
                                        "direct plan and, where it leaves positioners short or late, a partial retraction of those "
                                        "alone, everyone else going straight (two legs of the planner); kept where shorter (0: never)",
                                        unit="positioners", low=0, high=1_000_000, group="route")
-    route_groups: bool = setting(False, "the positioners a leg's first attempt leaves short go home together with the neighbours "
+    route_groups: bool = setting(True, "the positioners a leg's first attempt leaves short go home together with the neighbours "
                                  "in their way, by a search in their joint angles together while everyone around them holds "
                                  "(group moves); taken where every group finds a way", group="route")
     stretch: bool = setting(False, "after planning, each positioner's move is spread over more of the makespan, along its "
