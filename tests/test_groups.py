@@ -542,12 +542,14 @@ def test_the_attempts_leg_is_tailed_too_where_group_moves_replaced_it(monkeypatc
     attempts, grouped = ramp(30), ramp(20)
 
     def fake_attempts(leg, plan_leg, n, time_limit_s, unblock, strict, solo, notes, groups):
-        notes["grouped"] = (grouped, (1, 2))
+        notes["grouped"], notes["rescued"] = (grouped, (1, 2)), True  # (the attempts' leg needed the fallback rounds)
         return attempts, 2, True
 
     tailed_to = {"length": 15}
+    withins = []
 
-    def fake_tail(leg, joints, plan_leg, dt_s):  # only the attempts' leg has a tail to gain
+    def fake_tail(leg, joints, plan_leg, dt_s, within=None):  # only the attempts' leg has a tail to gain
+        withins.append(within)
         return (ramp(tailed_to["length"]), 1) if joints is attempts else (joints, 0)
 
     monkeypatch.setattr(legs, "_attempts", fake_attempts)
@@ -555,10 +557,11 @@ def test_the_attempts_leg_is_tailed_too_where_group_moves_replaced_it(monkeypatc
     kwargs = {"restarts": 0.05, "tails": True, "groups": True, "solo": (0.05, 0.05)}
     leg = legs.complete_leg(sc, None, 4, **kwargs)
     assert len(leg.joints) == 15 and leg.grouped == () and leg.untailed is attempts and leg.first_samples == 30
-    assert leg.runs == 3
+    assert leg.runs == 3 and leg.rescued and withins == [None, 20]  # (the attempts' tails must end before group moves' leg)
     tailed_to["length"] = 25  # (tailed, still longer than group moves' leg)
     leg = legs.complete_leg(sc, None, 4, **kwargs)
     assert leg.joints is grouped and leg.grouped == (1, 2) and leg.untailed is None and leg.first_samples == 20
+    assert not leg.rescued
     tailed_to["length"] = 15
     monkeypatch.setattr(legs, "TAIL_BOTH", False)
     leg = legs.complete_leg(sc, None, 4, **kwargs)

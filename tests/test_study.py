@@ -145,6 +145,17 @@ def test_a_table_without_its_parts_is_kept_and_the_study_goes_on_from_it(tmp_pat
     old = after_positioners[after_positioners["task"].isin(table["task"])].reset_index(drop=True)
     pd.testing.assert_frame_equal(old, positioners)
     assert len(after_positioners) == len(positioners) + 3 * (7 + 19)
+    # A row recorded lost runs again, and so does a run whose positioners' rows are gone; where
+    # any part is left, the parts are the record (a part deleted runs again).
+    shutil.rmtree(grown.parts_dir)
+    lost, bare = after["task"].iloc[0], after["task"].iloc[1]
+    after.loc[after["task"] == lost, "status"] = "lost"
+    after.to_parquet(grown.out, index=False)
+    after_positioners[after_positioners["task"] != bare].to_parquet(grown.positioner_out, index=False)
+    assert recorded_tasks(grown) == set(after["task"]) - {lost, bare}
+    grown.parts_dir.mkdir()
+    after.iloc[2:3].to_parquet(grown.parts_dir / f"{after['task'].iloc[2]}.parquet", index=False)
+    assert recorded_tasks(grown) == {after["task"].iloc[2]}
 
 
 def test_sweep_on_a_real_local_dask_cluster(tmp_path):

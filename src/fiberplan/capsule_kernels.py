@@ -24,7 +24,8 @@ module shaping its inputs and outputs:
   thousands of times a run on small groups);
 - :func:`indexed_smallest`: :func:`fiberplan.geometry.indexed_clearances`, the same values'
   smallest per pair, for pairs read by index from capsule ends placed once (group moves:
-  :mod:`fiberplan.planners.coordination.groups`).
+  :mod:`fiberplan.planners.coordination.groups`), and :func:`zone_indexed_clearances` the same
+  for MOONS' own zones (:func:`fiberplan.zones.indexed_clearances`).
 
 The arithmetic is numpy's, operation for operation and in the same order (the cheapest formula
 each combination's shapes allow: point to point, point to segment, segment to segment closest at

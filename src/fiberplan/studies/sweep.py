@@ -10,7 +10,7 @@ distributed cluster, and the sweep is resumable and loss-free:
 - the table ``<out>`` is rebuilt from the parts as runs finish (at most every few seconds)
   and at the end;
 - re-running the same command skips every run whose part exists, and every finished run of
-  the table when its parts are gone (a fresh clone has the table only): those rows get their
+  the table when not one part is left (a fresh clone has the table only): those rows get their
   parts again (:func:`adopt_table`), so the rebuilt table keeps them;
 - a run that raises is recorded as a row with ``status = "error"`` and the message (a
   deterministic result of its inputs, kept on resume); a run lost to the machinery (its
@@ -54,6 +54,7 @@ import dataclasses
 import itertools
 import math
 import os
+import sys
 import time
 import tomllib
 from collections.abc import Iterable, Iterator, Mapping, Sequence
@@ -328,8 +329,9 @@ def lost_tasks(spec: StudySpec) -> set[str]:
 
 
 def _unadopted_rows(spec: StudySpec) -> Any:
-    """The existing table's finished rows whose task has no part (None without a table)."""
-    if not spec.out.is_file():
+    """The existing table's finished rows to adopt (:func:`adopt_table`): ``None`` unless the
+    table exists and not one part does."""
+    if not spec.out.is_file() or _parts(spec) or _parts(spec, positioners=True):
         return None
     import pandas as pd
 
@@ -337,36 +339,46 @@ def _unadopted_rows(spec: StudySpec) -> Any:
     if "task" not in table.columns or "status" not in table.columns:
         raise StudyError(f"{spec.out} is not a study table (no 'task' or 'status' column), so the study cannot go on "
                          "from it; move it away or set another `out` in the study file")
-    return table[(table["status"] != STATUS_LOST) & ~table["task"].isin(finished_tasks(spec))]
+    table = table[table["status"] != STATUS_LOST]
+    if spec.per_positioner:  # (a run without its positioners' rows is run again)
+        held = set(pd.read_parquet(spec.positioner_out, columns=["task"])["task"]) if spec.positioner_out.is_file() else set()
+        table = table[table["task"].isin(held) | (table["status"] != "ok")]
+    return table
 
 
 def recorded_tasks(spec: StudySpec) -> set[str]:
-    """Keys of the tasks a run of the study skips: those with a part, and the table's finished rows."""
+    """Keys of the study's tasks a run of it skips: those with a part, or, where the parts are
+    gone, the table's finished rows (:func:`adopt_table`)."""
     rows = _unadopted_rows(spec)
     keys = {t.key for t in spec.tasks}
     return (finished_tasks(spec) | (set() if rows is None else set(rows["task"]))) & keys
 
 
 def adopt_table(spec: StudySpec) -> int:
-    """Give every finished row of an existing table without a part its part again; returns how many.
+    """Where a study's table exists and none of its parts does, give the table's finished rows
+    their parts again; returns how many runs were adopted.
 
     The parts are working files (a fresh clone has the table without them): without this, a
     resumed study would run those tasks again and, until they finished, rebuild the table
-    without their rows. A row recorded ``lost`` is not adopted (it runs again), nor a row whose
-    task already has a part (the part is the newer result). Per-positioner rows come along from
-    ``<out stem>.positioners.parquet`` when the study writes it.
+    without their rows. A row recorded ``lost`` is not adopted (it runs again); where the study
+    writes per-positioner rows, a finished run is adopted with its rows from
+    ``<out stem>.positioners.parquet``, and run again if that has none. Where any part exists
+    the parts are the record, as before (a part deleted runs again).
     """
     rows = _unadopted_rows(spec)
     if rows is None or rows.empty:
         return 0
     import pandas as pd
 
-    positioners = pd.read_parquet(spec.positioner_out) if spec.per_positioner and spec.positioner_out.is_file() else None
+    positioners = None
+    if spec.per_positioner and spec.positioner_out.is_file():
+        positioners = dict(iter(pd.read_parquet(spec.positioner_out).groupby("task", sort=False)))
     spec.parts_dir.mkdir(parents=True, exist_ok=True)
     for key, row in rows.groupby("task", sort=False):
-        if positioners is not None:  # written first: a run's part is what marks it finished
+        mine = None if positioners is None else positioners.get(key)
+        if mine is not None and len(mine):  # written first: a run's part is what marks it finished
             with atomic_path(spec.parts_dir / f"{key}.positioners.parquet") as tmp:
-                positioners[positioners["task"] == key].reset_index(drop=True).to_parquet(tmp, index=False)
+                mine.reset_index(drop=True).to_parquet(tmp, index=False)
         with atomic_path(spec.parts_dir / f"{key}.parquet") as tmp:
             row.reset_index(drop=True).to_parquet(tmp, index=False)
     return rows["task"].nunique()
@@ -534,7 +546,9 @@ def _run_study(spec: StudySpec, workers: int | None, scheduler: str | None, prog
     if spec.parts_dir.is_dir():
         for stale in spec.parts_dir.glob(".*.part.parquet"):  # left by a writer that was killed
             stale.unlink(missing_ok=True)
-    adopt_table(spec)
+    adopted = adopt_table(spec)
+    if adopted and progress:
+        print(f"{spec.out}: its parts were gone; {adopted} finished run(s) taken from the table", file=sys.stderr)
     done = finished_tasks(spec)
     todo = [t for t in spec.tasks if t.key not in done]
     bar = _progress_bar(len(spec.tasks), len(spec.tasks) - len(todo)) if progress else None

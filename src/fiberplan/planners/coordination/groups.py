@@ -125,7 +125,8 @@ class _Budget:
 
 CACHED_SIZES = 32
 """Sizes of clearance call whose arrays a group keeps (its members' and the index arrays; a few
-MB; all of them, over 200 sizes on MOONS 61 unfold seed 6, held over 100 MB a group)."""
+MB; all of them, over 200 sizes on MOONS 61 unfold seed 6, held over 100 MB a group when each
+pair's rows were kept, before session 48)."""
 
 
 class _Group:
@@ -401,7 +402,7 @@ def _timed(path: np.ndarray, speeds: np.ndarray, dt_s: float) -> np.ndarray:
     return timed
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class Stop:
     """Where :func:`groups` without ``rescue`` stopped: at ``part`` (its members, sorted), the
     ``index``-th group of the ``unit``-th unit, which found no way, with ``out`` the joints

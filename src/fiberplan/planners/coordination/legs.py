@@ -160,7 +160,8 @@ def complete_leg(
     Where a group found no way and the attempts leave the leg short, the first attempt's group
     moves go on from where they stopped as a last resort, the groups without a way searched
     harder after the others (``groups.groups`` with ``rescue``); kept if every group then finds a
-    way."""
+    way. Where group moves' leg replaced the attempts' complete one, both are tailed and the
+    shorter kept (:data:`TAIL_BOTH`)."""
     t0 = time.perf_counter()
     notes: dict[str, Any] = {}
     joints, runs, complete = _attempts(leg, plan_leg, attempts, time_limit_s, unblock, strict, solo, notes, groups)
@@ -193,8 +194,9 @@ def complete_leg(
         untailed = None if joints is before else before
         if attempts_leg is not None and TAIL_BOTH:
             # The attempts' leg, longer than group moves' before the tails, may end earlier with
-            # its own tail (MOONS 500 unfold seed 42: 35.9 s with group moves, 33.7 s without).
-            other, more = tail_backwards(leg, attempts_leg[0], plan_leg, restarts)
+            # its own tail (MOONS 500 unfold seed 42: the reversed fold 35.9 s with group moves'
+            # leg, 33.7 s with the attempts'); its tails stop once they cannot end first.
+            other, more = tail_backwards(leg, attempts_leg[0], plan_leg, restarts, within=len(joints))
             runs += more
             if len(other) < len(joints):
                 first, carried, notes["rescued"] = len(attempts_leg[0]), (), attempts_leg[1]
@@ -257,7 +259,8 @@ TAIL_FRACTIONS = (0.95, 0.98)
 its movers sat on their targets (:func:`tail_backwards`)."""
 
 
-def tail_backwards(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: float) -> tuple[np.ndarray, int]:
+def tail_backwards(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: float,
+                   within: int | None = None) -> tuple[np.ndarray, int]:
     """A complete leg whose last positioners straggle, with its tail planned in the other direction.
 
     Cut at the first sample at which a fraction ``f`` of :data:`TAIL_FRACTIONS` of the movers sat
@@ -287,13 +290,14 @@ def tail_backwards(leg: Scenario, joints: np.ndarray, plan_leg: PlanLeg, dt_s: f
     kind = TAIL_FORWARD if leg.kind in REVERSED_LEGS else REVERSE_LEG
     best, runs = joints, 0
     for k in cuts:
-        if k < 1 or k >= len(best) - 2:
+        beat = len(best) if within is None else min(len(best), within)  # (samples a tail must end before)
+        if k < 1 or k >= beat - 2:
             continue
         back = _replace(leg, start_deg=np.degrees(leg.target), target_values=np.where(leg.locked[:, None], 0.0, np.degrees(joints[k])),
                         name=f"{leg.name}:tail-backwards", kind=kind)
-        tail, n_runs, ok = _attempts(back, plan_leg, 2, (len(best) - 1 - k) * dt_s, unblock=False, strict=False)
+        tail, n_runs, ok = _attempts(back, plan_leg, 2, (beat - 1 - k) * dt_s, unblock=False, strict=False)
         runs += n_runs
-        if ok and k + len(tail) - 1 < len(best) - 1:
+        if ok and k + len(tail) - 1 < beat - 1:
             tail = exactly_at(exactly_at(tail, back.target, joints[k]), back.start, leg.target)
             best = np.concatenate([joints[: k + 1], tail[::-1][1:]])
     return best, runs
