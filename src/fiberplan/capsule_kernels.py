@@ -278,6 +278,21 @@ def _inside_depth(points_start: np.ndarray, points_end: np.ndarray, point_rows: 
 
 
 @numba.njit(cache=True, error_model="numpy", nogil=True)
+def _pair_depth(s_i: np.ndarray, e_i: np.ndarray, s_j: np.ndarray, e_j: np.ndarray, za: int, zb: int, poly_a: bool, poly_b: bool,
+                zone_rows: np.ndarray, zone_offsets: np.ndarray, zone_is_polygon: np.ndarray) -> float:  # pragma: no cover
+    """The depth of the deepest core point of zone ``za`` of one positioner (capsule ends
+    ``s_i``, ``e_i`` ``(C, 2)``) inside polygon ``zb`` of the other, or of ``zb`` inside polygon
+    ``za`` (whichever are polygons), 0 if none is inside: the zone kernels' containment check."""
+    rows_a, rows_b = zone_rows[zone_offsets[za]:zone_offsets[za + 1]], zone_rows[zone_offsets[zb]:zone_offsets[zb + 1]]
+    deep = 0.0
+    if poly_b:  # zone a of i inside polygon b of j
+        deep = _maximum(deep, _inside_depth(s_i, e_i, rows_a, not zone_is_polygon[za], s_j, rows_b))
+    if poly_a:  # zone b of j inside polygon a of i
+        deep = _maximum(deep, _inside_depth(s_j, e_j, rows_b, not zone_is_polygon[zb], s_i, rows_a))
+    return deep
+
+
+@numba.njit(cache=True, error_model="numpy", nogil=True)
 def zone_clearances(si: np.ndarray, ei: np.ndarray, sj: np.ndarray, ej: np.ndarray, ci: np.ndarray, cj: np.ndarray,
                     pair_a: np.ndarray, pair_b: np.ndarray, disc_radius: np.ndarray, pair_poly_a: np.ndarray, pair_poly_b: np.ndarray,
                     pair_radius_sum: np.ndarray, combo_pair: np.ndarray, combo_ca: np.ndarray, combo_cb: np.ndarray,
@@ -313,13 +328,8 @@ def zone_clearances(si: np.ndarray, ei: np.ndarray, sj: np.ndarray, ej: np.ndarr
         for p in range(n_p):
             depth[p] = 0.0
             if (pair_poly_a[p] or pair_poly_b[p]) and bounds[p] <= 0.0:
-                za, zb = pair_a[p], pair_b[p]
-                rows_a, rows_b = zone_rows[zone_offsets[za]:zone_offsets[za + 1]], zone_rows[zone_offsets[zb]:zone_offsets[zb + 1]]
-                deep = 0.0
-                if pair_poly_b[p]:  # zone a of i inside polygon b of j
-                    deep = _maximum(deep, _inside_depth(si[m], ei[m], rows_a, not zone_is_polygon[za], sj[m], rows_b))
-                if pair_poly_a[p]:  # zone b of j inside polygon a of i
-                    deep = _maximum(deep, _inside_depth(sj[m], ej[m], rows_b, not zone_is_polygon[zb], si[m], rows_a))
+                deep = _pair_depth(si[m], ei[m], sj[m], ej[m], pair_a[p], pair_b[p], pair_poly_a[p], pair_poly_b[p],
+                                   zone_rows, zone_offsets, zone_is_polygon)
                 depth[p] = deep
                 lowered = lowered or deep > 0.0
         if lowered:
@@ -353,13 +363,8 @@ def zone_indexed_clearances(start: np.ndarray, end: np.ndarray, centres: np.ndar
         for p in range(n_p):
             depth[p] = 0.0
             if (pair_poly_a[p] or pair_poly_b[p]) and bounds[p] <= 0.0:
-                za, zb = pair_a[p], pair_b[p]
-                rows_a, rows_b = zone_rows[zone_offsets[za]:zone_offsets[za + 1]], zone_rows[zone_offsets[zb]:zone_offsets[zb + 1]]
-                deep = 0.0
-                if pair_poly_b[p]:  # zone a of i inside polygon b of j
-                    deep = _maximum(deep, _inside_depth(start[u], end[u], rows_a, not zone_is_polygon[za], start[v], rows_b))
-                if pair_poly_a[p]:  # zone b of j inside polygon a of i
-                    deep = _maximum(deep, _inside_depth(start[v], end[v], rows_b, not zone_is_polygon[zb], start[u], rows_a))
+                deep = _pair_depth(start[u], end[u], start[v], end[v], pair_a[p], pair_b[p], pair_poly_a[p], pair_poly_b[p],
+                                   zone_rows, zone_offsets, zone_is_polygon)
                 depth[p] = deep
                 lowered = lowered or deep > 0.0
         best = 0.0
@@ -430,12 +435,8 @@ def zone_smallest(si: np.ndarray, ei: np.ndarray, ci: np.ndarray, i_index: np.nd
                                    sj[v, b, 0], sj[v, b, 1], ej[v, b, 0], ej[v, b, 1]) - combo_radii[k]
                 value = c if n == pair_offsets[p] else _minimum(value, c)
             if bound <= 0.0 and (pair_poly_a[p] or pair_poly_b[p]):
-                rows_a, rows_b = zone_rows[zone_offsets[za]:zone_offsets[za + 1]], zone_rows[zone_offsets[zb]:zone_offsets[zb + 1]]
-                deep = 0.0
-                if pair_poly_b[p]:
-                    deep = _maximum(deep, _inside_depth(si[u], ei[u], rows_a, not zone_is_polygon[za], sj[v], rows_b))
-                if pair_poly_a[p]:
-                    deep = _maximum(deep, _inside_depth(sj[v], ej[v], rows_b, not zone_is_polygon[zb], si[u], rows_a))
+                deep = _pair_depth(si[u], ei[u], sj[v], ej[v], za, zb, pair_poly_a[p], pair_poly_b[p], zone_rows, zone_offsets,
+                                   zone_is_polygon)
                 if deep > 0.0:
                     value = _minimum(value, -(deep + pair_radius_sum[p]))
             best = _minimum(best, value)
