@@ -15,7 +15,7 @@ import numpy as np
 from fiberplan import _fork
 from fiberplan.errors import PlannerError
 from fiberplan.geometry import min_pair_clearance
-from fiberplan.metrics import arrival_times, lower_bound_s, reached_mask
+from fiberplan.metrics import arrival_times, lower_bound_s, move_times, reached_mask
 from fiberplan.outcomes import outcome_labels
 from fiberplan.planners.coordination.fork import CHILD_RUNS, RUN_LOG, Ahead, both
 from fiberplan.planners.coordination.legs import Leg, PlanLeg, _park_candidates, complete_leg, exactly_at, leg_scenario, with_neighbours
@@ -52,6 +52,7 @@ class _Options:
     pairs_above: float = 0.0  # schedule_pairs_retry of a planner with schedule_pairs off (the mpc's), else 0: never
     rescue_up_to: int = 0  # route_rescue_up_to
     groups: bool = False  # route_groups
+    partial_folds: bool = False  # route_partial_folds
 
     @property
     def solo(self) -> tuple[float, float]:
@@ -171,15 +172,38 @@ def _with_neighbours(scenario: Scenario, movers: np.ndarray) -> np.ndarray:
     return with_neighbours(movers, scenario.pairs) & ~scenario.locked
 
 
-def _folded_midway(scenario: Scenario, start: np.ndarray) -> np.ndarray:
-    """Folded (the datum's beta) at the alpha half-way between the start and the target: safe for
-    everyone (folded positioners of every preset keep clear of each other at any alphas), and each
-    leg turns alpha half the way."""
+def _folded_part_way(scenario: Scenario, start: np.ndarray, fraction: float) -> np.ndarray:
+    """Folded (the datum's beta) at the alpha ``fraction`` of the way from the datum's to the one
+    half-way between the start and the target (1: half-way, each leg turning alpha half the way).
+    Safe for everyone (folded positioners of every preset keep clear of each other at any alphas)."""
     home = _home(scenario)
     out = _datum(scenario)
     free = ~scenario.locked
-    out[free, 0] = 0.5 * (start[free, 0] + home[free, 0])
+    out[free, 0] += fraction * (0.5 * (start[free, 0] + home[free, 0]) - out[free, 0])
     return out
+
+
+PARTIAL_FOLDS = (0.4, 0.3)
+"""Fractions (:func:`_folded_part_way`) at which a dense move's two legs are also planned, besides
+the datum (``route_partial_folds``). SDSS 547 random seeds 0-4, the mpc, makespan / bound through
+the datum 2.11, 1.98, 2.19, 2.26, 2.10 (its alpha 10 deg is at one end of SDSS' alpha range: each
+leg turns alpha up to 350 deg); at 0.4: 1.50, 1.86, 1.49, 1.43, 1.36; at 0.3: 1.49, 1.58, 1.47,
+1.62, 1.56; half-way (1): 5.95 on seed 0, its legs straggle (the arms turn every way); the smaller
+fractions turn most arms towards the datum's side, the same way (docs/results.md, session 51)."""
+
+PARTIAL_FOLD_GAIN = 0.85
+"""A partial fold is planned only where its two legs' lower bounds add up to at most this fraction
+of the datum's (SDSS 547 random: 0.79 at 0.4; MOONS, whose datum alpha is in the middle of its
+range and so already on the way of most moves: 0.96-0.99 on MOONS 500, 0.89-0.95 on MOONS 61 random
+seeds 0-2, where each leg costs seconds of planning)."""
+
+
+def _legs_bound_s(scenario: Scenario, start: np.ndarray, safe: np.ndarray) -> float:
+    """The two legs' lower bounds through ``safe``, added."""
+    movers = ~scenario.locked
+    there = move_times(scenario.instrument, start, safe)[movers]
+    back = move_times(scenario.instrument, _home(scenario), safe)[movers]
+    return float(there.max() + back.max()) if movers.any() else 0.0
 
 
 def _clear_holds(scenario: Scenario, hold: np.ndarray, movers: np.ndarray) -> np.ndarray:
@@ -210,9 +234,10 @@ def _clear_holds(scenario: Scenario, hold: np.ndarray, movers: np.ndarray) -> np
 
 
 def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.ndarray | None = None,
-               movers: np.ndarray | None = None, label: str = "", midway: bool = False) -> list[_Piece] | None:
-    """Two legs through the datum (``midway``: through the folded configuration half-way in
-    alpha, :func:`_folded_midway`) for ``movers`` (default: every positioner that is not locked),
+               movers: np.ndarray | None = None, label: str = "", part_way: float = 0.0) -> list[_Piece] | None:
+    """Two legs through the datum (``part_way`` > 0: through the folded configuration that fraction of
+    the way to half-way in alpha, :func:`_folded_part_way`, if it keeps the safety margin; else
+    ``None``) for ``movers`` (default: every positioner that is not locked),
     the others holding where ``start`` has them: ``start -> safe``, then ``(target -> safe)``
     reversed, overlapped where that is clear (:func:`overlap_legs`). A leg left short is met
     where it stalled by the other leg planned again (:func:`_meet`); ``None`` unless the two legs
@@ -220,8 +245,12 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     start = scenario.start if start is None else start
     movers = ~scenario.locked if movers is None else movers
     home = _home(scenario)
-    safe = _folded_midway(scenario, start) if midway else _datum(scenario)
+    safe = _folded_part_way(scenario, start, part_way) if part_way else _datum(scenario)
     hold = _clear_holds(scenario, np.where(movers[:, None], safe, start), movers)
+    if part_way and len(scenario.pairs):
+        clearance = min_pair_clearance(scenario.instrument, scenario.base_xy, scenario.orient, hold, scenario.pairs)
+        if float(clearance.min()) < opts.floor_mm:  # (a mover's fold beside a held positioner, say)
+            return None
     fold = leg_scenario(scenario, start, hold, "fold")
     back_start = np.where(movers[:, None], home, start)
     back = leg_scenario(scenario, back_start, hold, UNFOLD_REVERSED_LEG)
@@ -231,6 +260,7 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
         lambda: complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails, groups=opts.groups),
     )
     met = ""
+    place = (f"the datum's beta, alpha {part_way:g} of the way to half-way" if part_way != 1 else "the datum's beta, alpha half-way") if part_way else "the datum"
     if not (first.complete and second.complete):
         legs = _meet(scenario, plan_leg, opts, start, back_start, first, second)
         if legs is None:
@@ -255,13 +285,13 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
     assert best is not None
     _, fold_joints, unfold, joints, shift = best
     if joints is not None:
-        return [_Piece(f"{label}fold to the datum, then unfold from it (planned from the targets), overlapped by {shift} steps{met}",
+        return [_Piece(f"{label}fold to {place}, then unfold from it (planned from the targets), overlapped by {shift} steps{met}",
                        joints, who, first.runs + second.runs, first.wall_s + second.wall_s, overlap_steps=shift,
                        first_samples=plain, rescued=rescued, through_datum=True, grouped=first.grouped + second.grouped)]
     return [
-        _Piece(f"{label}fold to the datum{met}", fold_joints, who, first.runs, first.wall_s, first_samples=first.first_samples,
+        _Piece(f"{label}fold to {place}{met}", fold_joints, who, first.runs, first.wall_s, first_samples=first.first_samples,
                rescued=rescued, through_datum=True, grouped=first.grouped),
-        _Piece(f"{label}unfold from the datum (planned from the targets){met}", unfold, who, second.runs, second.wall_s,
+        _Piece(f"{label}unfold from {place} (planned from the targets){met}", unfold, who, second.runs, second.wall_s,
                first_samples=second.first_samples, rescued=rescued, through_datum=True, grouped=second.grouped),
     ]
 
@@ -628,7 +658,8 @@ def _options(settings: Any, scenario: Scenario) -> _Options:
                     float(getattr(settings, "safety_margin_mm", 0.0)), step, settings.dt_s, rest, settings.route_tails,
                     int(getattr(settings, "route_prioritized_up_to", 0)), int(getattr(settings, "route_retract_up_to", 0)),
                     0.0 if getattr(settings, "schedule_pairs", True) else float(getattr(settings, "schedule_pairs_retry", 0.0)),
-                    int(getattr(settings, "route_rescue_up_to", 0)), bool(getattr(settings, "route_groups", False)))
+                    int(getattr(settings, "route_rescue_up_to", 0)), bool(getattr(settings, "route_groups", False)),
+                    bool(getattr(settings, "route_partial_folds", False)))
 
 
 def _is_dense(scenario: Scenario) -> bool:
@@ -645,7 +676,7 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
     elif route == "via_datum":
         consider("via_datum", _via_datum(scenario, plan_leg, opts))
     elif route == "via_fold":
-        consider("via_fold", _via_datum(scenario, plan_leg, opts, midway=True))
+        consider("via_fold", _via_datum(scenario, plan_leg, opts, part_way=1.0))
     elif _is_at_datum(scenario, scenario.start):  # an unfold: the reverse of a fold
         # The fold's stragglers: a long alpha turn beside a neighbour folding in its way, which
         # neither the schedule's single searches nor the loop resolve. A fold that straggles is
@@ -673,7 +704,9 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
         # after it was slower than the two-leg plan on every one: the two legs (and in small
         # groups, after the prioritized schedule's candidates, the direct plan with a partial
         # retraction: coordinate).
-        consider("via_datum", _via_datum(scenario, plan_leg, opts))
+        datum = consider("via_datum", _via_datum(scenario, plan_leg, opts))
+        if opts.partial_folds:
+            _partial_folds(scenario, plan_leg, opts, consider, datum)
         return "dense"
     else:
         direct = _direct(scenario, plan_leg, opts)
@@ -681,6 +714,26 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
             consider("via_datum", _via_datum(scenario, plan_leg, opts))
             consider("fix_up", _fix_up(scenario, direct[0], plan_leg, opts))
     return "general"
+
+
+def _partial_folds(scenario: Scenario, plan_leg: PlanLeg, opts: _Options,
+                   consider: Callable[[str, list[_Piece] | None], dict[str, Any]], datum: dict[str, Any]) -> None:
+    """The two legs through the folded configurations of :data:`PARTIAL_FOLDS`, each where its legs'
+    bounds promise a gain over the datum's (:data:`PARTIAL_FOLD_GAIN`) and no positioner's own way
+    through it (start, fold, target at full speed) is already as long as the best plan found."""
+    start, home = scenario.start, _home(scenario)
+    datum_legs = _legs_bound_s(scenario, start, _datum(scenario))
+    best = datum.get("makespan_s", math.inf) if datum.get("short", 1) == 0 else math.inf
+    for fraction in PARTIAL_FOLDS:
+        safe = _folded_part_way(scenario, start, fraction)
+        if _legs_bound_s(scenario, start, safe) > PARTIAL_FOLD_GAIN * datum_legs:
+            continue
+        way = move_times(scenario.instrument, start, safe) + move_times(scenario.instrument, safe, home)
+        if float(way[~scenario.locked].max(initial=0.0)) >= best:
+            continue
+        found = consider(f"via a partial fold ({fraction:g})", _via_datum(scenario, plan_leg, opts, part_way=fraction))
+        if found.get("short", 1) == 0:
+            best = min(best, found["makespan_s"])
 
 
 _WHOLE_FALLBACK = contextvars.ContextVar("whole_fallback", default=False)

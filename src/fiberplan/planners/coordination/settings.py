@@ -49,6 +49,9 @@ class RouteSettings:
     route_groups: bool = setting(True, "the positioners a leg's first attempt leaves short go home together with the neighbours "
                                  "in their way, by a search in their joint angles together while everyone around them holds "
                                  "(group moves); taken where every group finds a way", group="route")
+    route_partial_folds: bool = setting(True, "on a dense field (reach above 0.8 pitch), the two legs are also planned through "
+                                        "folded configurations part of the way from the datum's alpha to the one half-way between "
+                                        "start and target, where their bounds promise a gain; kept where shorter", group="route")
     stretch: bool = setting(False, "after planning, each positioner's move is spread over more of the makespan, along its "
                             "own path or the straight joint move, where every neighbour pair keeps the safety margin at the "
                             "samples (less energy; the same starts and ends, the makespan never later; no motor rule broken "
