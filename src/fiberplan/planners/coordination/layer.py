@@ -260,7 +260,9 @@ def _via_datum(scenario: Scenario, plan_leg: PlanLeg, opts: _Options, start: np.
         lambda: complete_leg(back, plan_leg, opts.attempts, restarts=opts.restarts, solo=opts.solo, tails=opts.tails, groups=opts.groups),
     )
     met = ""
-    place = (f"the datum's beta, alpha {part_way:g} of the way to half-way" if part_way != 1 else "the datum's beta, alpha half-way") if part_way else "the datum"
+    place = "the datum"
+    if part_way:
+        place = "the datum's beta, alpha " + ("half-way" if part_way == 1 else f"{part_way:g} of the way to half-way")
     if not (first.complete and second.complete):
         legs = _meet(scenario, plan_leg, opts, start, back_start, first, second)
         if legs is None:
