@@ -706,9 +706,11 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
         # after it was slower than the two-leg plan on every one: the two legs (and in small
         # groups, after the prioritized schedule's candidates, the direct plan with a partial
         # retraction: coordinate).
-        datum = consider("via_datum", _via_datum(scenario, plan_leg, opts))
-        if opts.partial_folds:
-            _partial_folds(scenario, plan_leg, opts, consider, datum)
+        # Partial folds first: where one ends before any positioner could pass through the datum
+        # and back at full speed, the two legs through the datum cannot be shorter, and are not planned.
+        best = _partial_folds(scenario, plan_leg, opts, consider) if opts.partial_folds else math.inf
+        if best >= _way_s(scenario, _datum(scenario)):
+            consider("via_datum", _via_datum(scenario, plan_leg, opts))
         return "dense"
     else:
         direct = _direct(scenario, plan_leg, opts)
@@ -718,24 +720,30 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
     return "general"
 
 
+def _way_s(scenario: Scenario, safe: np.ndarray) -> float:
+    """The longest of the positioners' own ways from the start through ``safe`` to where they end,
+    each joint at full speed: no plan through ``safe`` is shorter."""
+    way = move_times(scenario.instrument, scenario.start, safe) + move_times(scenario.instrument, safe, _home(scenario))
+    return float(way[~scenario.locked].max(initial=0.0))
+
+
 def _partial_folds(scenario: Scenario, plan_leg: PlanLeg, opts: _Options,
-                   consider: Callable[[str, list[_Piece] | None], dict[str, Any]], datum: dict[str, Any]) -> None:
+                   consider: Callable[[str, list[_Piece] | None], dict[str, Any]]) -> float:
     """The two legs through the folded configurations of :data:`PARTIAL_FOLDS`, each where its legs'
-    bounds promise a gain over the datum's (:data:`PARTIAL_FOLD_GAIN`) and no positioner's own way
-    through it (start, fold, target at full speed) is already as long as the best plan found."""
-    start, home = scenario.start, _home(scenario)
+    bounds promise a gain over the datum's (:data:`PARTIAL_FOLD_GAIN`) and its own floor
+    (:func:`_way_s`) is below the best plan found. Returns the best complete plan's makespan (s;
+    infinite if none)."""
+    start = scenario.start
     datum_legs = _legs_bound_s(scenario, start, _datum(scenario))
-    best = datum.get("makespan_s", math.inf) if datum.get("short", 1) == 0 else math.inf
+    best = math.inf
     for fraction in PARTIAL_FOLDS:
         safe = _folded_part_way(scenario, start, fraction)
-        if _legs_bound_s(scenario, start, safe) > PARTIAL_FOLD_GAIN * datum_legs:
-            continue
-        way = move_times(scenario.instrument, start, safe) + move_times(scenario.instrument, safe, home)
-        if float(way[~scenario.locked].max(initial=0.0)) >= best:
+        if _legs_bound_s(scenario, start, safe) > PARTIAL_FOLD_GAIN * datum_legs or _way_s(scenario, safe) >= best:
             continue
         found = consider(f"via a partial fold ({fraction:g})", _via_datum(scenario, plan_leg, opts, part_way=fraction))
         if found.get("short", 1) == 0:
             best = min(best, found["makespan_s"])
+    return best
 
 
 _WHOLE_FALLBACK = contextvars.ContextVar("whole_fallback", default=False)
