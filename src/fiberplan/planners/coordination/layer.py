@@ -709,7 +709,8 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
         # Partial folds first: where one ends before any positioner could pass through the datum
         # and back at full speed, the two legs through the datum cannot be shorter, and are not planned.
         best = _partial_folds(scenario, plan_leg, opts, consider) if opts.partial_folds else math.inf
-        if best >= _way_s(scenario, _datum(scenario)):
+        movers = ~scenario.locked  # (the datum as _via_datum holds it: beside a locked positioner, maybe folded elsewhere)
+        if best >= _way_s(scenario, _clear_holds(scenario, np.where(movers[:, None], _datum(scenario), scenario.start), movers)):
             consider("via_datum", _via_datum(scenario, plan_leg, opts))
         return "dense"
     else:
