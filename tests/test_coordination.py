@@ -73,10 +73,10 @@ def test_partial_folds_on_sdss_turn_alpha_less_than_the_datum_and_reach_every_ta
     datum = np.array(sc.instrument.datum_rad)
     fold = np.column_stack([datum[0] + 0.4 * (0.5 * (sc.start[:, 0] + sc.target[:, 0]) - datum[0]), np.full(37, datum[1])])
     assert all(np.any(np.all(np.abs(result.trajectory.joints[:, i] - fold[i]) < 1e-12, axis=1)) for i in range(37))
-    # It ends before any positioner could go through the datum and back: the two legs through the
-    # datum, which could not be shorter, are not planned (and the fold at 0.3, whose own floor is
-    # no shorter, neither).
-    assert makespan < layer._way_s(sc, layer._datum(sc)) and set(tried) == {"via a partial fold (0.4)"}
+    # It ends before any positioner could go through the datum to its target: the two legs through
+    # the datum, which could not be shorter unless they stalled and met elsewhere, are not planned
+    # (and the fold at 0.3, whose own floor is no shorter, neither).
+    assert makespan < layer._way_s(sc, layer._datum(sc)) - layer.FLOOR_MARGIN_S and set(tried) == {"via a partial fold (0.4)"}
     off = fp.plan(sc, "mpc", OWN_ROUTES | {"route_groups": False, "route_partial_folds": False})
     assert [c["strategy"] for c in off.stats["candidates"]] == ["via_datum"]
     assert makespan < 0.8 * off.trajectory.times[-1]
@@ -94,10 +94,13 @@ def test_partial_folds_are_planned_only_where_their_bounds_promise_a_gain(monkey
         sc = fp.make_scenario(inst, 61, "random", 1)
         assert layer._partial_folds(sc, None, opts, lambda name, pieces: {}) == np.inf
     assert planned == [("sdss", 0.4), ("sdss", 0.3)]
-    # Not where a positioner's own way through the fold is already as long as the best plan found.
-    planned.clear()
-    layer._partial_folds(sc, None, opts, lambda name, pieces: {"short": 0, "makespan_s": 1.0})
-    assert planned == [("sdss", 0.4)]
+    # Not where a positioner's own way through the fold is already as long as the best plan found
+    # (the fold at 0.4 here ending just after, or at, the floor of the fold at 0.3).
+    floor = layer._way_s(sc, layer._held(sc, layer._folded_part_way(sc, sc.start, 0.3)))
+    for makespan, expected in ((floor + 0.01, [("sdss", 0.4), ("sdss", 0.3)]), (floor, [("sdss", 0.4)])):
+        planned.clear()
+        layer._partial_folds(sc, None, opts, lambda name, pieces, m=makespan: {"short": 0, "makespan_s": m})
+        assert planned == expected
 
 
 def test_overlapped_legs_still_pass_every_positioner_through_the_datum_and_end_sooner():
@@ -825,7 +828,8 @@ def test_where_retracting_the_short_ones_is_not_enough_their_neighbours_retract_
 def test_a_small_dense_group_retracts_only_those_the_direct_plan_leaves_short_or_late():
     # SDSS 7 hard seed 1: the direct plan brings everyone home, the last ones late (33.2 s); the
     # late ones retract while the others go straight: 11.48 s, shorter than the prioritized
-    # schedule's retraction (13.96 s) and the two legs through the datum (16.98 s).
+    # schedule's retraction (13.96 s), the partial fold (12.06 s) and the two legs through the datum
+    # (16.98 s).
     from fiberplan.planners.coordination import layer
     from fiberplan.studies import hard_scenario
 
@@ -834,7 +838,10 @@ def test_a_small_dense_group_retracts_only_those_the_direct_plan_leaves_short_or
     summary = _check(sc, auto)
     assert auto.stats["chosen"] == "direct through a retraction" and summary["reached"] == 7
     others = {c["strategy"]: c["makespan_s"] for c in auto.stats["candidates"] if c["strategy"] != auto.stats["chosen"]}
-    assert {"via_datum", "direct"} <= set(others) and summary["makespan_s"] < min(others.values())
+    # (The two legs through the datum are not planned: the partial fold at 0.4, 12.06 s, ends before
+    # any positioner could pass through the datum to its target.)
+    assert {"via a partial fold (0.4)", "direct"} <= set(others) and summary["makespan_s"] < min(others.values())
+    assert "via_datum" not in others and others["via a partial fold (0.4)"] < layer._way_s(sc, layer._datum(sc)) - layer.FLOOR_MARGIN_S
     (leg,) = auto.stats["legs"]
     assert leg["leg"].startswith("direct through a retraction of ")
     retracted = int(leg["leg"].split("retraction of ")[1].split()[0])

@@ -179,7 +179,8 @@ def _folded_part_way(scenario: Scenario, start: np.ndarray, fraction: float) -> 
     home = _home(scenario)
     out = _datum(scenario)
     free = ~scenario.locked
-    out[free, 0] += fraction * (0.5 * (start[free, 0] + home[free, 0]) - out[free, 0])
+    half = 0.5 * (start[free, 0] + home[free, 0])
+    out[free, 0] = half if fraction == 1 else out[free, 0] + fraction * (half - out[free, 0])
     return out
 
 
@@ -708,9 +709,9 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
         # retraction: coordinate).
         # Partial folds first: where one ends before any positioner could pass through the datum
         # and back at full speed, the two legs through the datum cannot be shorter, and are not planned.
+        # (Only a plan whose legs stall and meet elsewhere, _meet, could be: a rescue, not planned then.)
         best = _partial_folds(scenario, plan_leg, opts, consider) if opts.partial_folds else math.inf
-        movers = ~scenario.locked  # (the datum as _via_datum holds it: beside a locked positioner, maybe folded elsewhere)
-        if best >= _way_s(scenario, _clear_holds(scenario, np.where(movers[:, None], _datum(scenario), scenario.start), movers)):
+        if best >= _way_s(scenario, _held(scenario, _datum(scenario))) - FLOOR_MARGIN_S:
             consider("via_datum", _via_datum(scenario, plan_leg, opts))
         return "dense"
     else:
@@ -721,11 +722,24 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
     return "general"
 
 
+FLOOR_MARGIN_S = 1.0
+"""A candidate is skipped for its floor (:func:`_way_s`) only where the best plan found ends this much
+before it (s): a makespan counts arrivals within the tolerance, a little before the exact joints."""
+
+
+def _held(scenario: Scenario, safe: np.ndarray) -> np.ndarray:
+    """``safe`` as :func:`_via_datum` holds it for every positioner that is not locked (beside a
+    locked one, a mover may fold at another alpha: :func:`_clear_holds`)."""
+    movers = ~scenario.locked
+    return _clear_holds(scenario, np.where(movers[:, None], safe, scenario.start), movers)
+
+
 def _way_s(scenario: Scenario, safe: np.ndarray) -> float:
-    """The longest of the positioners' own ways from the start through ``safe`` to where they end,
-    each joint at full speed: no plan through ``safe`` is shorter."""
+    """The longest of the positioners' own ways from the start through ``safe`` to their targets,
+    each joint at full speed: no plan whose legs meet at ``safe`` ends before (the makespan counts
+    the positioners with a target)."""
     way = move_times(scenario.instrument, scenario.start, safe) + move_times(scenario.instrument, safe, _home(scenario))
-    return float(way[~scenario.locked].max(initial=0.0))
+    return float(way[scenario.has_target & ~scenario.locked].max(initial=0.0))
 
 
 def _partial_folds(scenario: Scenario, plan_leg: PlanLeg, opts: _Options,
@@ -739,7 +753,7 @@ def _partial_folds(scenario: Scenario, plan_leg: PlanLeg, opts: _Options,
     best = math.inf
     for fraction in PARTIAL_FOLDS:
         safe = _folded_part_way(scenario, start, fraction)
-        if _legs_bound_s(scenario, start, safe) > PARTIAL_FOLD_GAIN * datum_legs or _way_s(scenario, safe) >= best:
+        if _legs_bound_s(scenario, start, safe) > PARTIAL_FOLD_GAIN * datum_legs or _way_s(scenario, _held(scenario, safe)) >= best:
             continue
         found = consider(f"via a partial fold ({fraction:g})", _via_datum(scenario, plan_leg, opts, part_way=fraction))
         if found.get("short", 1) == 0:
