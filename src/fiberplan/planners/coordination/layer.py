@@ -707,9 +707,10 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
         # after it was slower than the two-leg plan on every one: the two legs (and in small
         # groups, after the prioritized schedule's candidates, the direct plan with a partial
         # retraction: coordinate).
-        # Partial folds first: where one ends before any positioner could pass through the datum
-        # and back at full speed, the two legs through the datum cannot be shorter, and are not planned.
-        # (Only a plan whose legs stall and meet elsewhere, _meet, could be: a rescue, not planned then.)
+        # Partial folds first: where one ends before the longest of the positioners' ways through the
+        # datum to their targets at full speed, the two legs through the datum cannot be shorter, and
+        # are not planned. (Only legs that stall and meet elsewhere, _meet, could be: a rescue, not
+        # planned then.)
         best = _partial_folds(scenario, plan_leg, opts, consider) if opts.partial_folds else math.inf
         if best >= _way_s(scenario, _held(scenario, _datum(scenario))) - FLOOR_MARGIN_S:
             consider("via_datum", _via_datum(scenario, plan_leg, opts))
@@ -723,8 +724,10 @@ def _strategies(scenario: Scenario, route: str, plan_leg: PlanLeg, opts: _Option
 
 
 FLOOR_MARGIN_S = 1.0
-"""A candidate is skipped for its floor (:func:`_way_s`) only where the best plan found ends this much
-before it (s): a makespan counts arrivals within the tolerance, a little before the exact joints."""
+"""The two legs through the datum are skipped for their floor (:func:`_way_s`) only where the best
+plan found ends this much before it (s). A makespan counts arrivals within the tolerance, a few
+milliseconds before the exact joints; the second is a deliberately wide margin. (The partial folds'
+own prune in :func:`_partial_folds` compares with the floor itself, as measured.)"""
 
 
 def _held(scenario: Scenario, safe: np.ndarray) -> np.ndarray:
